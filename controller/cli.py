@@ -1,0 +1,119 @@
+"""`touchshape` command line: thin commands over library code, grouped by what they act on."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from controller.config import ConfigError, config_to_toml, load_config
+
+log = logging.getLogger("touchshape")
+
+EXAMPLES = """examples:
+  touchshape sim snapshot --object mug --out logs/snapshot
+  touchshape sim snapshot --object path/to/model.obj --up-axis y --out logs/snapshot
+  touchshape config show --config configs/sim.toml
+  touchshape bench sim --json logs/bench_sim.json
+"""
+
+
+def _config_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--config", type=Path, default=None, help="TOML config file (default: the sim bench)"
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="touchshape",
+        description="3D shape perception from vision, touch and shape priors, on a robot.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    groups = parser.add_subparsers(dest="group", required=True, metavar="COMMAND")
+
+    config = groups.add_parser("config", help="show the effective configuration")
+    config_commands = config.add_subparsers(dest="command", required=True)
+    show = config_commands.add_parser("show", help="print the effective config as TOML")
+    _config_argument(show)
+    show.set_defaults(handler=_config_show)
+
+    sim = groups.add_parser("sim", help="the simulated bench")
+    sim_commands = sim.add_subparsers(dest="command", required=True)
+    snapshot = sim_commands.add_parser(
+        "snapshot",
+        help="write PNGs of the Kinect colour and depth views and one tactile image",
+        epilog="example: touchshape sim snapshot --object mug --out logs/snapshot",
+    )
+    _config_argument(snapshot)
+    snapshot.add_argument("--object", help="shape-library category or mesh file (default: config)")
+    snapshot.add_argument("--up-axis", default=None, help="up axis of a mesh file (e.g. y)")
+    snapshot.add_argument("--seed", type=int, default=None, help="object and noise seed")
+    snapshot.add_argument("--out", type=Path, required=True, help="output folder")
+    snapshot.set_defaults(handler=_sim_snapshot)
+
+    bench = groups.add_parser("bench", help="performance benchmarks (JSON)")
+    bench_commands = bench.add_subparsers(dest="command", required=True)
+    bench_sim = bench_commands.add_parser(
+        "sim", help="time the bench's renderer and tactile simulation per frame"
+    )
+    _config_argument(bench_sim)
+    bench_sim.add_argument("--frames", type=int, default=20, help="frames timed per measurement")
+    bench_sim.add_argument("--json", type=Path, default=None, help="also write the JSON here")
+    bench_sim.set_defaults(handler=_bench_sim)
+    return parser
+
+
+def _config_show(args: argparse.Namespace) -> int:
+    print(config_to_toml(load_config(args.config)), end="")
+    return 0
+
+
+def _sim_snapshot(args: argparse.Namespace) -> int:
+    from controller.snapshot import take_snapshot
+
+    config = load_config(args.config)
+    paths = asyncio.run(
+        take_snapshot(
+            config, args.out, object_spec=args.object, up_axis=args.up_axis, seed=args.seed
+        )
+    )
+    for path in paths:
+        print(path)
+    return 0
+
+
+def _bench_sim(args: argparse.Namespace) -> int:
+    from controller.benchmarks import benchmark_sim
+
+    result = benchmark_sim(load_config(args.config), frames=args.frames)
+    text = json.dumps(result, indent=2)
+    print(text)
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(text + "\n")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    handler: Callable[[argparse.Namespace], int] = args.handler
+    try:
+        return handler(args)
+    except (ConfigError, FileNotFoundError, ValueError) as error:
+        print(f"touchshape: error: {error}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

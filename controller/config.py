@@ -1,0 +1,267 @@
+"""The one configuration system: a typed tree of frozen dataclasses loaded from TOML.
+
+Defaults describe the simulated bench, so an empty file (or none) runs the sim. Unknown keys and
+bad values fail with a ``ConfigError`` naming the dotted key. Device sections are defined beside
+their drivers (``drivers.config``); the rest lives here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from drivers.config import (
+    ArmConfig,
+    CameraConfig,
+    GripperConfig,
+    SensorConfig,
+    SimConfig,
+    Vec3,
+)
+from models.geometry import VoxelGrid, axes_facing_camera
+
+
+class ConfigError(ValueError):
+    """A configuration file is unreadable or has an unknown key or a bad value."""
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    id: str = "sim"
+    """Robot id used in Zenoh key expressions (touchshape/<id>/...)."""
+    arm: ArmConfig = field(default_factory=ArmConfig)
+
+    def __post_init__(self) -> None:
+        if not self.id or any(c in self.id for c in "/*$?#"):
+            raise ValueError("id must be a non-empty key-expression chunk (no / * $ ? #)")
+
+
+@dataclass(frozen=True)
+class CamerasConfig:
+    rgbd: CameraConfig = field(default_factory=CameraConfig)
+
+
+@dataclass(frozen=True)
+class LimitsConfig:
+    """Safety limits every motion is checked against (world frame, metres, seconds, newtons)."""
+
+    workspace_min_world: Vec3 = (-0.40, -0.40, 0.0)
+    workspace_max_world: Vec3 = (0.40, 0.40, 0.60)
+    """Box the TCP must stay in."""
+    max_tcp_speed_m_s: float = 0.25
+    max_tcp_acceleration_m_s2: float = 1.0
+    approach_speed_m_s: float = 0.02
+    max_joint_speed_rad_s: float = 1.0
+    max_force_n: float = 40.0
+    """Gripper force that counts as a collision (fault)."""
+    contact_force_n: float = 5.0
+    """Gripper force that counts as a touch contact."""
+    table_clearance_m: float = 0.01
+    shape_clearance_m: float = 0.01
+
+    def __post_init__(self) -> None:
+        low, high = self.workspace_min_world, self.workspace_max_world
+        if any(lo >= hi for lo, hi in zip(low, high, strict=True)):
+            raise ValueError("workspace_min_world must be below workspace_max_world on every axis")
+        positive = (
+            self.max_tcp_speed_m_s,
+            self.max_tcp_acceleration_m_s2,
+            self.approach_speed_m_s,
+            self.max_joint_speed_rad_s,
+            self.max_force_n,
+            self.contact_force_n,
+        )
+        if min(positive) <= 0:
+            raise ValueError("speeds, accelerations and forces must be positive")
+        if self.contact_force_n >= self.max_force_n:
+            raise ValueError("contact_force_n must be below max_force_n")
+
+
+@dataclass(frozen=True)
+class VoxelGridConfig:
+    resolution: int = 64
+    extent_m: float = 0.26
+    """Edge of the cubic grid; objects up to 25 cm tall and 20 cm wide fit the default."""
+    object_point_world: Vec3 = (0.0, 0.0, 0.0)
+    """Bottom centre of the grid on the table (o_w in the paper)."""
+
+    def __post_init__(self) -> None:
+        if not 8 <= self.resolution <= 256 or self.extent_m <= 0:
+            raise ValueError("resolution must be in [8, 256] and extent_m positive")
+
+    def grid(self, camera_position_world: Vec3) -> VoxelGrid:
+        """The registered grid; its axes follow the camera's yaw (the frame the prior uses)."""
+        axes = axes_facing_camera(camera_position_world, self.object_point_world)
+        return VoxelGrid(self.resolution, self.extent_m, self.object_point_world, axes)
+
+
+@dataclass(frozen=True)
+class ModelsConfig:
+    prior: str = "general"
+    preset: Literal["cpu", "paper"] = "cpu"
+    weights_dir: str = ""
+    """Empty = the weights shipped with the package."""
+    device: str = "cpu"
+    refine_learning_rate: float = 1e-3
+    refine_iterations_per_touch: int = 10
+
+
+@dataclass(frozen=True)
+class MessagingConfig:
+    mode: Literal["peer", "client"] = "peer"
+    listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    connect: tuple[str, ...] = ()
+    multicast_scouting: bool = False
+
+
+@dataclass(frozen=True)
+class LoggingConfig:
+    dir: str = "logs"
+    level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    rerun: bool = True
+
+
+@dataclass(frozen=True)
+class Config:
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    cameras: CamerasConfig = field(default_factory=CamerasConfig)
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    gripper: GripperConfig = field(default_factory=GripperConfig)
+    limits: LimitsConfig = field(default_factory=LimitsConfig)
+    voxel_grid: VoxelGridConfig = field(default_factory=VoxelGridConfig)
+    models: ModelsConfig = field(default_factory=ModelsConfig)
+    messaging: MessagingConfig = field(default_factory=MessagingConfig)
+    logging: LoggingConfig = field(default_factory=LoggingConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+
+
+# --- loading --------------------------------------------------------------------------------------
+
+
+def load_config(path: str | Path | None = None) -> Config:
+    """Load a TOML config file over the sim defaults; None gives the defaults."""
+    if path is None:
+        return Config()
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"config file not found: {path}") from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise ConfigError(f"cannot read config file {path}: {error}") from None
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"{path}: not valid TOML: {error}") from None
+    return config_from_dict(data, source=str(path))
+
+
+def config_from_dict(data: dict[str, Any], *, source: str = "config") -> Config:
+    """Build the config tree from nested dicts (as parsed from TOML), checking every key."""
+    return _build(Config, data, prefix="", source=source)
+
+
+def config_to_dict(config: Any) -> dict[str, Any]:
+    """The config as nested plain dicts (tuples as lists), ready for TOML or JSON."""
+
+    def plain(value: Any) -> Any:
+        if dataclasses.is_dataclass(value):
+            return {f.name: plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        if isinstance(value, tuple):
+            return [plain(v) for v in value]
+        return value
+
+    return plain(config)
+
+
+def config_to_toml(config: Config) -> str:
+    """TOML text of a config (the effective config that `touchshape config show` prints)."""
+    lines: list[str] = []
+
+    def emit(table: dict[str, Any], prefix: str) -> None:
+        scalars = {k: v for k, v in table.items() if not isinstance(v, dict)}
+        if scalars and prefix:
+            lines.append(f"\n[{prefix}]")
+        for key, value in scalars.items():
+            lines.append(f"{key} = {_toml_value(value)}")
+        for key, value in table.items():
+            if isinstance(value, dict):
+                emit(value, f"{prefix}.{key}" if prefix else key)
+
+    emit(config_to_dict(config), "")
+    return "\n".join(lines).lstrip() + "\n"
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return repr(value)
+
+
+def _build(cls: type, data: Any, *, prefix: str, source: str) -> Any:
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: [{prefix}] must be a table, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        key = f"{prefix}.{unknown[0]}" if prefix else unknown[0]
+        raise ConfigError(f"{source}: unknown key '{key}' (known: {', '.join(sorted(names))})")
+    values = {}
+    for name, raw in data.items():
+        key = f"{prefix}.{name}" if prefix else name
+        values[name] = _coerce(hints[name], raw, key=key, source=source)
+    try:
+        return cls(**values)
+    except ValueError as error:
+        where = prefix or "config"
+        raise ConfigError(f"{source}: bad value in [{where}]: {error}") from None
+
+
+def _coerce(hint: Any, raw: Any, *, key: str, source: str) -> Any:
+    def bad(expected: str) -> ConfigError:
+        return ConfigError(f"{source}: '{key}' must be {expected}, got {raw!r}")
+
+    origin = typing.get_origin(hint)
+    if dataclasses.is_dataclass(hint):
+        return _build(hint, raw, prefix=key, source=source)
+    if origin is Literal:
+        if raw not in typing.get_args(hint):
+            raise bad("one of " + ", ".join(repr(a) for a in typing.get_args(hint)))
+        return raw
+    if origin in (typing.Union, types.UnionType):
+        options = [a for a in typing.get_args(hint) if a is not type(None)]
+        return _coerce(options[0], raw, key=key, source=source)
+    if origin is tuple:
+        args = typing.get_args(hint)
+        if not isinstance(raw, list):
+            raise bad("an array")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(args[0], v, key=key, source=source) for v in raw)
+        if len(raw) != len(args):
+            raise bad(f"an array of {len(args)} values")
+        return tuple(_coerce(a, v, key=key, source=source) for a, v in zip(args, raw, strict=True))
+    if hint is bool:
+        if not isinstance(raw, bool):
+            raise bad("true or false")
+        return raw
+    if hint is int:
+        if isinstance(raw, bool) or not isinstance(raw, int):
+            raise bad("an integer")
+        return raw
+    if hint is float:
+        if isinstance(raw, bool) or not isinstance(raw, int | float):
+            raise bad("a number")
+        return float(raw)
+    if hint is str:
+        if not isinstance(raw, str):
+            raise bad("a string")
+        return raw
+    raise ConfigError(f"{source}: '{key}' has an unsupported type {hint!r}")  # a bug in Config

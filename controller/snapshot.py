@@ -1,0 +1,120 @@
+"""`touchshape sim snapshot`: look at the bench - camera views and one real touch."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+import numpy as np
+from matplotlib import colormaps
+from PIL import Image
+
+from controller.config import Config
+from controller.motion import pad_pose_facing, tcp_pose_for_pad
+from drivers.factory import make_devices
+from models.geometry import invert_transform, matrix_to_ur_pose
+
+log = logging.getLogger(__name__)
+
+STANDOFF_M = 0.005
+"""Gap between the gel and the surface before the fingers open for the final contact."""
+APPROACH_M = 0.06
+"""The arm comes in along the surface normal from this far out."""
+TOUCH_WIDTH_M = 0.08
+"""Finger opening at the stand-off: the pad then protrudes past the gripper body."""
+
+
+async def take_snapshot(
+    config: Config,
+    out_dir: Path,
+    *,
+    object_spec: str | None = None,
+    up_axis: str | None = None,
+    seed: int | None = None,
+) -> list[Path]:
+    """Render the Kinect views, touch the object once on its robot-facing side, save PNGs."""
+    sim = config.sim
+    sim = dataclasses.replace(
+        sim,
+        object=object_spec or sim.object,
+        object_up_axis=up_axis or sim.object_up_axis,
+        seed=sim.seed if seed is None else seed,
+    )
+    devices = make_devices(
+        arm=config.robot.arm,
+        gripper=config.gripper,
+        sensor=config.sensor,
+        camera=config.cameras.rgbd,
+        sim=sim,
+        rng=np.random.default_rng(sim.seed),
+    )
+    out_dir.mkdir(parents=True, exist_ok=True)
+    await devices.connect()
+    try:
+        frame = await devices.camera.read()
+        paths = [
+            _save(out_dir / "kinect_colour.png", frame.colour_rgb),
+            _save(out_dir / "kinect_depth.png", _colourise_depth(frame.depth_m)),
+        ]
+        assert devices.world is not None
+        await devices.gripper.home()
+        world = devices.world
+        toward_robot = world.pose_world_base[:3, 3] * [1.0, 1.0, 0.0]
+        # High on the side facing the robot: the gripper body above the pad stays clear.
+        touch_height_m = max(0.008, float(world.object_mesh_world.bounds[1, 2]) - 0.02)
+        point, normal = world.surface_point_toward(toward_robot, touch_height_m)
+        pose_world_pad = pad_pose_facing(point, normal, STANDOFF_M)
+        tool = world.tool
+        pose_base_world = invert_transform(world.pose_world_base)
+        approach = pad_pose_facing(point, normal, APPROACH_M)
+        for pose_world_pad_goal in (approach, pose_world_pad):
+            pose_world_tcp = tcp_pose_for_pad(pose_world_pad_goal, tool, TOUCH_WIDTH_M)
+            await devices.gripper.move(
+                TOUCH_WIDTH_M, speed_m_s=0.05, force_limit_n=config.limits.max_force_n,
+                timeout_s=10.0,
+            )
+            await devices.arm.move_linear(
+                matrix_to_ur_pose(pose_base_world @ pose_world_tcp),
+                speed_m_s=config.limits.max_tcp_speed_m_s,
+                acceleration_m_s2=config.limits.max_tcp_acceleration_m_s2,
+                timeout_s=30.0,
+            )
+        reference = await devices.tactile.reference()
+        touch = await devices.gripper.move(
+            config.gripper.stroke_m,
+            speed_m_s=0.005,
+            force_limit_n=config.limits.contact_force_n,
+            timeout_s=30.0,
+        )
+        log.info(
+            "touch at %s: %s, force %.2f N",
+            np.round(point, 4),
+            "contact" if touch.blocked else "miss",
+            touch.force_n,
+        )
+        tactile = await devices.tactile.read()
+        paths += [
+            _save(out_dir / "tactile.png", tactile.image_bgr[..., ::-1]),
+            _save(out_dir / "tactile_reference.png", reference.image_bgr[..., ::-1]),
+        ]
+    finally:
+        await devices.close()
+    return paths
+
+
+def _colourise_depth(depth_m: np.ndarray) -> np.ndarray:
+    """Depth as a turbo-coloured image; no return (0) is black."""
+    valid = depth_m > 0
+    if not valid.any():
+        return np.zeros((*depth_m.shape, 3), dtype=np.uint8)
+    near, far = np.percentile(depth_m[valid], [1, 99])
+    scaled = np.clip((depth_m - near) / max(far - near, 1e-6), 0, 1)
+    rgb = (colormaps["turbo"](scaled)[..., :3] * 255).astype(np.uint8)
+    rgb[~valid] = 0
+    return rgb
+
+
+def _save(path: Path, image_rgb: np.ndarray) -> Path:
+    Image.fromarray(np.ascontiguousarray(image_rgb)).save(path)
+    return path

@@ -1,0 +1,157 @@
+"""Configuration of the devices: one frozen dataclass per device kind, sim and real backends alike.
+
+Which backend runs is the ``type`` field, never a flag in code. Units are in the field names.
+The full config tree and its TOML loader live in ``controller.config``; these sections are
+defined here so that drivers take typed settings without importing the controller.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from models.render import look_at_pose
+
+Vec3 = tuple[float, float, float]
+Vec6 = tuple[float, float, float, float, float, float]
+
+
+@dataclass(frozen=True)
+class ArmConfig:
+    type: Literal["sim", "ur_rtde"] = "sim"
+    model: Literal["ur5"] = "ur5"
+    host: str = "127.0.0.2"
+    """Controller address for ur_rtde (the sim UR controller emulator binds 127.0.0.2)."""
+    pose_world_base: Vec6 = (0.05, -0.42, 0.0, 0.0, 0.0, 0.0)
+    """Robot base in the world as a UR pose [m, axis-angle rad]; `touchshape calibrate robot`."""
+    tcp_offset: Vec6 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    """TCP relative to the flange; touchshape plans with the flange and its own tool model."""
+    home_joints_rad: Vec6 = (1.5708, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
+    max_joint_speed_rad_s: float = 3.14
+    """Hardware limit of the UR5 (180 deg/s); the controller's limits are stricter."""
+    control_frequency_hz: float = 125.0
+    """RTDE rate: 125 Hz on a CB3 UR5, 500 Hz on e-Series."""
+    connect_timeout_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        if self.max_joint_speed_rad_s <= 0 or self.control_frequency_hz <= 0:
+            raise ValueError("max_joint_speed_rad_s and control_frequency_hz must be positive")
+
+
+@dataclass(frozen=True)
+class GripperConfig:
+    """WSG 50 gripper and the fingers it carries (tool frame: z along the fingers from the
+    flange, fingers open along +-x, the GelSight finger is the +x one)."""
+
+    type: Literal["sim", "wsg50_serial", "wsg50_tcp"] = "sim"
+    serial_port: str = "/dev/ttyUSB0"
+    baudrate: int = 115200
+    host: str = "192.168.1.20"
+    tcp_port: int = 1000
+    stroke_m: float = 0.110
+    max_speed_m_s: float = 0.42
+    max_force_n: float = 80.0
+    body_size_m: Vec3 = (0.146, 0.052, 0.072)
+    """Gripper body box (x, y, z), its base on the flange."""
+    finger_size_m: Vec3 = (0.008, 0.020, 0.100)
+    """One finger box (thickness along x, width along y, length along z from the body's top)."""
+    timeout_s: float = 3.0
+
+    def __post_init__(self) -> None:
+        if not 0 < self.stroke_m <= 0.2:
+            raise ValueError("stroke_m must be in (0, 0.2]")
+        if min(self.body_size_m) <= 0 or min(self.finger_size_m) <= 0:
+            raise ValueError("body_size_m and finger_size_m must be positive")
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """GelSight tactile sensor mounted outward on the +x finger."""
+
+    type: Literal["sim", "opencv"] = "sim"
+    device: str = "0"
+    """OpenCV camera index or a /dev/v4l/by-id/... path."""
+    pad_width_mm: float = 19.0
+    """Along the finger (tool z), imaged along the 640 px columns."""
+    pad_height_mm: float = 14.0
+    image_width_px: int = 640
+    image_height_px: int = 480
+    frame_rate_hz: float = 30.0
+    housing_thickness_m: float = 0.025
+    """From the finger's outer face to the undeformed gel surface."""
+    housing_length_m: float = 0.035
+    """Housing extent along the finger, ending at the finger tip."""
+    pad_centre_from_tip_m: float = 0.0175
+    gel_thickness_mm: float = 2.0
+    max_indentation_mm: float = 1.5
+    """Deeper than this the object meets the rigid backing."""
+    youngs_modulus_mpa: float = 0.3
+    image_noise_sigma: float = 1.5
+    """Gaussian image noise of the simulated sensor, 8-bit units."""
+
+    def __post_init__(self) -> None:
+        if self.pad_width_mm <= 0 or self.pad_height_mm <= 0:
+            raise ValueError("pad size must be positive")
+        if not 0 < self.max_indentation_mm < self.gel_thickness_mm:
+            raise ValueError("max_indentation_mm must be in (0, gel_thickness_mm)")
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """The RGB-D camera, placed as in the paper: 45.72 cm high, tilted 30 degrees down."""
+
+    type: Literal["sim", "kinect_v2", "realsense"] = "sim"
+    serial: str = ""
+    height_m: float = 0.4572
+    tilt_deg: float = 30.0
+    horizontal_distance_m: float = 0.62
+    """From the object point to the camera, on the table plane."""
+    yaw_deg: float = 0.0
+    """Direction the camera looks in, about world z; 0 = looking along world +x."""
+    colour_scale: float = 0.5
+    """Colour resolution as a fraction of the Kinect v2's 1920x1080."""
+    depth_noise: bool = True
+    transparent_object: bool = False
+    """Sim: the object returns no depth, like glass on a time-of-flight camera."""
+    background: Literal["white", "gradient", "texture"] = "white"
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.tilt_deg < 90.0:
+            raise ValueError("tilt_deg must be in (0, 90)")
+        if not 0.05 <= self.colour_scale <= 1.0:
+            raise ValueError("colour_scale must be in [0.05, 1]")
+        if self.height_m <= 0 or self.horizontal_distance_m <= 0:
+            raise ValueError("height_m and horizontal_distance_m must be positive")
+
+    def pose_world_camera(self) -> NDArray[np.float64]:
+        """Camera pose (OpenCV axes) in the world, from height, tilt, distance and yaw."""
+        yaw, tilt = math.radians(self.yaw_deg), math.radians(self.tilt_deg)
+        forward = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+        eye = -self.horizontal_distance_m * forward + [0.0, 0.0, self.height_m]
+        view = math.cos(tilt) * forward - [0.0, 0.0, math.sin(tilt)]
+        return look_at_pose(eye, eye + view)
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """The simulated bench: which object stands on the table and how time runs."""
+
+    object: str = "mug"
+    """A shape-library category or a mesh file path (OBJ/STL/PLY/GLB)."""
+    object_up_axis: str = "z"
+    object_scale: float = 1.0
+    seed: int = 0
+    real_time_factor: float = 0.0
+    """0 = motions complete instantly (tests), 1 = real time (demos)."""
+    table_size_m: tuple[float, float] = (1.2, 0.8)
+    object_albedo_rgb: Vec3 = (0.75, 0.35, 0.25)
+
+    def __post_init__(self) -> None:
+        if self.real_time_factor < 0:
+            raise ValueError("real_time_factor must be >= 0")
+        if self.object_scale <= 0:
+            raise ValueError("object_scale must be positive")

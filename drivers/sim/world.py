@@ -1,0 +1,187 @@
+"""The simulated bench's physical world and shared state.
+
+One ``SimWorld`` holds the table, the fixed object, the arm's joint state and the finger opening;
+the simulated camera, GelSight, arm and gripper all read and change this one state, so a touch
+seen by the GelSight is exactly where the arm and gripper put the pad.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+from numpy.typing import NDArray
+
+from drivers.config import ArmConfig, GripperConfig, SensorConfig, SimConfig
+from drivers.tool import ToolBox, ToolModel
+from models.geometry import invert_transform, transform_points, ur_pose_to_matrix
+from models.render import Scene, SceneObject, make_table
+from models.shapes import object_mesh
+
+log = logging.getLogger(__name__)
+
+COLLISION_LINE_SPACING_M = 0.004
+"""Spacing of the probe lines on each tool box face: thinner object slivers could slip through."""
+
+
+class SimClock:
+    """Simulated time. ``real_time_factor`` 0 runs motions instantly (still yielding to the
+    event loop at every step), 1 runs them in real time."""
+
+    def __init__(self, real_time_factor: float = 0.0) -> None:
+        self.real_time_factor = real_time_factor
+        self.now_s = 0.0
+
+    async def advance(self, dt_s: float) -> None:
+        self.now_s += dt_s
+        await asyncio.sleep(dt_s * self.real_time_factor)
+
+
+@dataclass(frozen=True)
+class Collision:
+    """Which rigid tool part touches what."""
+
+    part: str
+    obstacle: str  # "object" or "table"
+
+
+class SimWorld:
+    """Table (top at world z=0) + one fixed object + the robot's state.
+
+    ``scene`` is what the camera renders; ``scene_mesh_world`` (object + table) is what the gel
+    pad can press against.
+    """
+
+    def __init__(
+        self,
+        object_mesh_world: trimesh.Trimesh,
+        *,
+        sim: SimConfig,
+        arm: ArmConfig,
+        gripper: GripperConfig,
+        sensor: SensorConfig,
+    ) -> None:
+        self.sim_config = sim
+        self.arm_config = arm
+        self.gripper_config = gripper
+        self.sensor_config = sensor
+        self.object_mesh_world = object_mesh_world
+        self.scene = Scene(
+            objects=[SceneObject(object_mesh_world, albedo_rgb=sim.object_albedo_rgb)],
+            table=make_table(sim.table_size_m),
+        )
+        self.table_mesh_world = self.scene.table.mesh
+        self.scene_mesh_world = trimesh.util.concatenate(
+            [self.object_mesh_world, self.table_mesh_world]
+        )
+        self.tool = ToolModel(gripper, sensor)
+        self.clock = SimClock(sim.real_time_factor)
+        self.pose_world_base = ur_pose_to_matrix(arm.pose_world_base)
+        self.joints_rad = np.asarray(arm.home_joints_rad, dtype=float)
+        self.pose_base_flange = np.eye(4)  # set by the arm from forward kinematics on connect
+        self.gripper_width_m = gripper.stroke_m / 2
+
+    @classmethod
+    def from_config(
+        cls,
+        sim: SimConfig,
+        arm: ArmConfig,
+        gripper: GripperConfig,
+        sensor: SensorConfig,
+    ) -> SimWorld:
+        """Build the object from the shape library (or a mesh file) at the world origin."""
+        rng = np.random.default_rng(sim.seed)
+        mesh = object_mesh(sim.object, rng, up_axis=sim.object_up_axis, scale=sim.object_scale)
+        return cls(mesh, sim=sim, arm=arm, gripper=gripper, sensor=sensor)
+
+    # --- poses ----------------------------------------------------------------------------------
+
+    def pose_world_tcp(self) -> NDArray[np.float64]:
+        return self.pose_world_base @ self.pose_base_flange
+
+    def pose_world_pad(self) -> NDArray[np.float64]:
+        return self.pose_world_tcp() @ self.tool.pose_tcp_pad(self.gripper_width_m)
+
+    def surface_point_toward(
+        self, direction_world: NDArray[np.float64], height_m: float
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Object surface point (and outward face normal) seen from far out along a horizontal
+        direction at a height above the table."""
+        direction = np.asarray(direction_world, dtype=float) * [1.0, 1.0, 0.0]
+        direction /= np.linalg.norm(direction)
+        origin = direction * 1.0 + [0.0, 0.0, height_m]
+        locations, _, triangles = self.object_mesh_world.ray.intersects_location(
+            [origin], [-direction], multiple_hits=False
+        )
+        if len(locations) == 0:
+            raise ValueError(f"no object surface along {direction} at height {height_m} m")
+        return locations[0], self.object_mesh_world.face_normals[triangles[0]]
+
+    # --- collision ------------------------------------------------------------------------------
+
+    def tool_collision(
+        self, pose_world_tcp: NDArray[np.float64], width_m: float
+    ) -> Collision | None:
+        """First rigid tool part that penetrates the object or the table, or None."""
+        for box in self.tool.rigid_boxes(width_m):
+            pose_world_box = pose_world_tcp @ box.pose_tcp_box
+            if self._box_below_table(pose_world_box, box.half_extents_m):
+                return Collision(box.name, "table")
+            if self._box_hits_object(pose_world_box, box):
+                return Collision(box.name, "object")
+        return None
+
+    def _box_below_table(self, pose_world_box: NDArray[np.float64], half: NDArray) -> bool:
+        signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
+        corners = transform_points(pose_world_box, signs * half)
+        table_x, table_y = self.sim_config.table_size_m
+        on_table = (np.abs(corners[:, 0]) <= table_x / 2) & (np.abs(corners[:, 1]) <= table_y / 2)
+        return bool(np.any(on_table & (corners[:, 2] < 0.0)))
+
+    def _box_hits_object(self, pose_world_box: NDArray[np.float64], box: ToolBox) -> bool:
+        half = box.half_extents_m
+        # Object vertices inside the box catch parts poking in; probe lines on the box faces
+        # catch surfaces crossing a face between vertices.
+        vertices_box = transform_points(
+            invert_transform(pose_world_box), self.object_mesh_world.vertices
+        )
+        if np.any(np.all(np.abs(vertices_box) < half, axis=1)):
+            return True
+        origins_box, directions_box, lengths = _face_probe_lines(half)
+        origins = transform_points(pose_world_box, origins_box)
+        directions = directions_box @ pose_world_box[:3, :3].T
+        _, ray_ids, locations = self.object_mesh_world.ray.intersects_id(
+            origins, directions, multiple_hits=False, return_locations=True
+        )
+        if len(ray_ids) == 0:
+            return False
+        distances = np.linalg.norm(locations - origins[ray_ids], axis=1)
+        return bool(np.any(distances <= lengths[ray_ids]))
+
+
+def _face_probe_lines(half: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    """Segments covering a box's faces: for each axis, lines parallel to it on the four faces
+    that contain that direction, spaced COLLISION_LINE_SPACING_M apart (box frame)."""
+    origins, directions, lengths = [], [], []
+    for axis in range(3):
+        u, v = [a for a in range(3) if a != axis]
+        count_u = max(2, int(np.ceil(2 * half[u] / COLLISION_LINE_SPACING_M)) + 1)
+        count_v = max(2, int(np.ceil(2 * half[v] / COLLISION_LINE_SPACING_M)) + 1)
+        grid_u = np.linspace(-half[u], half[u], count_u)
+        grid_v = np.linspace(-half[v], half[v], count_v)
+        # Lines on the two faces at u = +-half[u] and the two at v = +-half[v].
+        for fixed, sweep, grid in ((u, v, grid_v), (v, u, grid_u)):
+            for side in (-half[fixed], half[fixed]):
+                start = np.zeros((len(grid), 3))
+                start[:, axis] = -half[axis]
+                start[:, fixed] = side
+                start[:, sweep] = grid
+                origins.append(start)
+                direction = np.zeros((len(grid), 3))
+                direction[:, axis] = 1.0
+                directions.append(direction)
+                lengths.append(np.full(len(grid), 2 * half[axis]))
+    return np.concatenate(origins), np.concatenate(directions), np.concatenate(lengths)

@@ -1,0 +1,92 @@
+"""Geometry of the tool on the UR5 flange: WSG 50 body, two fingers, GelSight on the +x finger.
+
+Tool (flange) frame: z points away from the flange along the fingers, the fingers open along
++-x, the GelSight sits on the outer face of the +x finger looking along +x. Opening the gripper
+pushes the gel pad outward along +x: this is how the paper makes the final, gentle contact.
+
+The pad frame (``pose_tcp_pad``) is the one the tactile simulation and reconstruction use:
+origin at the centre of the undeformed gel surface, +z the gel's outward normal (tool +x),
++x along the finger toward its tip (the pad's 19 mm side, image columns), +y = z cross x.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.config import GripperConfig, SensorConfig
+from models.geometry import make_transform
+
+
+@dataclass(frozen=True)
+class ToolBox:
+    """An oriented box of the tool: centre pose in the tool frame and half extents (metres)."""
+
+    name: str
+    pose_tcp_box: NDArray[np.float64]
+    half_extents_m: NDArray[np.float64]
+
+
+class ToolModel:
+    """Width-dependent geometry of gripper, fingers and sensor, from their configs."""
+
+    def __init__(self, gripper: GripperConfig, sensor: SensorConfig) -> None:
+        self.gripper = gripper
+        self.sensor = sensor
+
+    @property
+    def finger_tip_z_m(self) -> float:
+        return self.gripper.body_size_m[2] + self.gripper.finger_size_m[2]
+
+    def pad_offset_x_m(self, width_m: float) -> float:
+        """Tool-frame x of the undeformed gel surface at a finger opening ``width_m``."""
+        return width_m / 2 + self.gripper.finger_size_m[0] + self.sensor.housing_thickness_m
+
+    def pose_tcp_pad(self, width_m: float) -> NDArray[np.float64]:
+        """Pad frame in the tool frame (see module docstring) at a finger opening."""
+        rotation = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
+        centre = [
+            self.pad_offset_x_m(width_m),
+            0.0,
+            self.finger_tip_z_m - self.sensor.pad_centre_from_tip_m,
+        ]
+        return make_transform(rotation, centre)
+
+    def rigid_boxes(self, width_m: float) -> list[ToolBox]:
+        """The tool's rigid parts at a finger opening. The gel's soft layer is left out: it may
+        be indented by up to ``max_indentation_mm``, the rigid backing behind it may not."""
+        body_x, body_y, body_z = self.gripper.body_size_m
+        finger_x, finger_y, finger_z = self.gripper.finger_size_m
+        finger_centre_z = body_z + finger_z / 2
+        housing_depth = self.sensor.housing_thickness_m - self.sensor.max_indentation_mm * 1e-3
+        housing_length = self.sensor.housing_length_m
+        housing_y = self.sensor.pad_height_mm * 1e-3 + 0.006
+        housing_start_x = width_m / 2 + finger_x
+
+        def box(name: str, centre: tuple[float, float, float], size: tuple[float, ...]) -> ToolBox:
+            return ToolBox(name, make_transform(None, centre), np.asarray(size) / 2)
+
+        return [
+            box("gripper_body", (0.0, 0.0, body_z / 2), (body_x, body_y, body_z)),
+            box(
+                "finger_sensor_side",
+                (width_m / 2 + finger_x / 2, 0.0, finger_centre_z),
+                (finger_x, finger_y, finger_z),
+            ),
+            box(
+                "finger_other_side",
+                (-width_m / 2 - finger_x / 2, 0.0, finger_centre_z),
+                (finger_x, finger_y, finger_z),
+            ),
+            box(
+                "gelsight_housing",
+                (
+                    housing_start_x + housing_depth / 2,
+                    0.0,
+                    self.finger_tip_z_m - housing_length / 2,
+                ),
+                (housing_depth, housing_y, housing_length),
+            ),
+        ]
