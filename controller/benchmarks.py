@@ -37,9 +37,7 @@ def _timed_ms(function: Callable[[], Any], frames: int) -> dict[str, float]:
 
 def benchmark_sim(config: Config, *, frames: int = 20) -> dict[str, Any]:
     """Per-frame times of the bench: Kinect render (+ depth noise) and GelSight simulation."""
-    world = SimWorld.from_config(
-        config.sim, config.robot.arm, config.gripper, config.sensor
-    )
+    world = SimWorld.from_config(config.sim, config.robot.arm, config.gripper, config.sensor)
     camera = config.cameras.rgbd
     intrinsics = CameraIntrinsics.kinect_v2_colour(camera.colour_scale)
     pose_world_camera = camera.pose_world_camera()

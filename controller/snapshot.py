@@ -13,6 +13,7 @@ from PIL import Image
 from controller.config import Config
 from controller.motion import pad_pose_facing, tcp_pose_for_pad
 from drivers.factory import make_devices
+from drivers.ur5_kinematics import inverse_kinematics
 from models.geometry import invert_transform, matrix_to_ur_pose
 
 log = logging.getLogger(__name__)
@@ -68,18 +69,28 @@ async def take_snapshot(
         tool = world.tool
         pose_base_world = invert_transform(world.pose_world_base)
         approach = pad_pose_facing(point, normal, APPROACH_M)
-        for pose_world_pad_goal in (approach, pose_world_pad):
-            pose_world_tcp = tcp_pose_for_pad(pose_world_pad_goal, tool, TOUCH_WIDTH_M)
-            await devices.gripper.move(
-                TOUCH_WIDTH_M, speed_m_s=0.05, force_limit_n=config.limits.max_force_n,
-                timeout_s=10.0,
-            )
-            await devices.arm.move_linear(
-                matrix_to_ur_pose(pose_base_world @ pose_world_tcp),
-                speed_m_s=config.limits.max_tcp_speed_m_s,
-                acceleration_m_s2=config.limits.max_tcp_acceleration_m_s2,
-                timeout_s=30.0,
-            )
+        await devices.gripper.move(
+            TOUCH_WIDTH_M, speed_m_s=0.05, force_limit_n=config.limits.max_force_n, timeout_s=10
+        )
+        # Joint move to a point out on the surface normal, then straight in to the stand-off.
+        pose_base_tcp = pose_base_world @ tcp_pose_for_pad(approach, tool, TOUCH_WIDTH_M)
+        joints = inverse_kinematics(pose_base_tcp, (await devices.arm.state()).joints_rad)
+        if joints is None:
+            raise ValueError("the approach pose for the snapshot touch is out of the arm's reach")
+        await devices.arm.move_joints(
+            joints,
+            speed_rad_s=config.limits.max_joint_speed_rad_s,
+            acceleration_rad_s2=2.0,
+            timeout_s=30.0,
+        )
+        await devices.arm.move_linear(
+            matrix_to_ur_pose(
+                pose_base_world @ tcp_pose_for_pad(pose_world_pad, tool, TOUCH_WIDTH_M)
+            ),
+            speed_m_s=config.limits.approach_speed_m_s,
+            acceleration_m_s2=config.limits.max_tcp_acceleration_m_s2,
+            timeout_s=30.0,
+        )
         reference = await devices.tactile.reference()
         touch = await devices.gripper.move(
             config.gripper.stroke_m,

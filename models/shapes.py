@@ -275,7 +275,7 @@ def _cap(rng: np.random.Generator) -> Manifold:
     # Scaled-down baseball cap: crown radius + brim length must fit 20 cm.
     crown_a = rng.uniform(0.058, 0.07)
     crown_b = crown_a * rng.uniform(0.88, 0.96)
-    crown_h = rng.uniform(0.055, 0.075)
+    crown_h = crown_a * rng.uniform(1.0, 1.2)  # crowns are a little taller than wide
     wall = rng.uniform(0.003, 0.005)
     brim_len = rng.uniform(0.04, 0.055)
     crown = _dome_shell(crown_a, crown_b, crown_h, wall)
@@ -662,18 +662,19 @@ def load_mesh_file(
     if not path.is_file():
         raise ShapeError(f"mesh file not found: {path}")
     try:
-        loaded = trimesh.load(path, force="scene")
-        # Only triangle geometry counts: scenes may also hold point clouds or 2-D paths.
-        parts = [g for g in loaded.dump(concatenate=False) if isinstance(g, trimesh.Trimesh)]
-        mesh = trimesh.util.concatenate(parts) if parts else None
+        # to_mesh bakes node transforms in and keeps only triangle geometry (a scene may also
+        # hold point clouds or paths).
+        mesh = trimesh.load_scene(path).to_mesh()
     except Exception as exc:  # trimesh's parsers raise many unrelated types on corrupt input
-        raise ShapeError(f"cannot read mesh file {path}: {exc}") from exc
-    if mesh is None or len(mesh.faces) == 0:
+        raise ShapeError(f"cannot read mesh file {path}: {exc!r}") from exc
+    if len(mesh.faces) == 0:
         raise ShapeError(f"mesh file {path} contains no triangles")
     if not np.isfinite(mesh.vertices).all():
         raise ShapeError(f"mesh file {path} has non-finite vertex coordinates")
 
-    mesh.merge_vertices()
+    # Files with texture coordinates or per-corner normals (e.g. ShapeNet OBJs) are loaded with
+    # vertices split along UV / normal seams, which would look like holes.
+    mesh.merge_vertices(merge_tex=True, merge_norm=True)
     if not mesh.is_volume:
         trimesh.repair.fill_holes(mesh)
         trimesh.repair.fix_normals(mesh)

@@ -37,7 +37,7 @@ ImageBGR = NDArray[np.uint8]
 
 # Rays are cast on a grid with this pixel spacing and bilinearly interpolated in between: the
 # indentation of a smooth surface is nearly linear over 2 px (0.06 mm).
-_RAY_STRIDE_PX = 2
+_RAY_STRIDE_PX = 4
 # ...except in grid cells that touch the contact and whose corners differ by more than this
 # (steep or discontinuous surface) or straddle the contact boundary: there every pixel gets its
 # own ray, so silhouettes and contact edges stay pixel-exact.

@@ -11,19 +11,16 @@ import pytest
 import trimesh
 
 from drivers.base import (
+    ArmState,
     DeviceNotConnectedError,
     DeviceTimeoutError,
     MotionRejectedError,
     ProtectiveStopError,
 )
 from drivers.config import ArmConfig, GripperConfig, SensorConfig, SimConfig
-from drivers.sim.arm import (
-    PROTECTIVE_STOP_HOLD_S,
-    SimUR5,
-    forward_kinematics,
-    inverse_kinematics,
-)
+from drivers.sim.arm import PROTECTIVE_STOP_HOLD_S, SimUR5
 from drivers.sim.world import SimWorld
+from drivers.ur5_kinematics import forward_kinematics, inverse_kinematics
 from models.geometry import (
     invert_transform,
     make_transform,
@@ -78,9 +75,9 @@ async def move_l(arm: SimUR5, target: np.ndarray, speed: float = 0.25, acc: floa
     await arm.move_linear(target, speed_m_s=speed, acceleration_m_s2=acc, timeout_s=30.0)
 
 
-async def record_while(task: asyncio.Task, arm: SimUR5) -> list:
+async def record_while(task: asyncio.Task, arm: SimUR5) -> list[ArmState]:
     """States seen at every yield of the event loop until ``task`` is done."""
-    states = []
+    states: list[ArmState] = []
     while not task.done():
         states.append(await arm.state())
         await asyncio.sleep(0)

@@ -24,7 +24,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-import ur_analytic_ik
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
@@ -38,6 +37,7 @@ from drivers.base import (
 )
 from drivers.config import ArmConfig
 from drivers.sim.world import SimWorld
+from drivers.ur5_kinematics import forward_kinematics, inverse_kinematics
 from models.geometry import invert_transform, matrix_to_ur_pose, ur_pose_to_matrix
 
 JOINT_LIMIT_RAD = 2.0 * np.pi
@@ -52,23 +52,6 @@ PROTECTIVE_STOP_HOLD_S = 5.0
 """A UR refuses to unlock a protective stop earlier than this after it happened."""
 
 FloatArray = NDArray[np.float64]
-
-
-def forward_kinematics(joints_rad: ArrayLike) -> FloatArray:
-    """UR5 flange pose in the base frame (4x4) for six joint angles (rad)."""
-    return np.asarray(ur_analytic_ik.ur5.forward_kinematics(*np.asarray(joints_rad, dtype=float)))
-
-
-def inverse_kinematics(
-    pose_base_flange: ArrayLike, joints_near_rad: ArrayLike
-) -> FloatArray | None:
-    """The UR5 joint solution (rad) for a flange pose closest to ``joints_near_rad``, each
-    joint taken as the turn nearest to it within the +-2 pi limits; None when unreachable."""
-    pose = np.ascontiguousarray(pose_base_flange, dtype=float)
-    near = np.asarray(joints_near_rad, dtype=float)
-    solutions = ur_analytic_ik.ur5.inverse_kinematics_closest(pose, *near)
-    finite = [np.asarray(q) for q in solutions if np.all(np.isfinite(q))]
-    return finite[0] if finite else None
 
 
 @dataclass(frozen=True)

@@ -125,15 +125,16 @@ class SimWSG50(Gripper):
             elapsed_s = 0.0
             while elapsed_s < duration_s:
                 if self._stop_requested.is_set():
-                    return await self.state()
+                    break
                 step_s = min(UPDATE_PERIOD_S, duration_s - elapsed_s)
                 await self.world.clock.advance(step_s)
                 elapsed_s += step_s
                 fraction = elapsed_s / duration_s
                 self.world.gripper_width_m = start_m + fraction * (stop.width_m - start_m)
-            self.world.gripper_width_m = stop.width_m
-            self._blocked = stop.blocked
-            self._stall_force_n = force_limit_n if stop.rigid else None
+            else:
+                self.world.gripper_width_m = stop.width_m
+                self._blocked = stop.blocked
+                self._stall_force_n = force_limit_n if stop.rigid else None
         finally:
             self._moving = False
         return await self.state()
