@@ -76,15 +76,13 @@ def _config_show(args: argparse.Namespace) -> int:
 
 
 def _sim_snapshot(args: argparse.Namespace) -> int:
-    from controller.snapshot import take_snapshot
+    from controller.snapshot import capture_snapshot, save_images
 
     config = load_config(args.config)
-    paths = asyncio.run(
-        take_snapshot(
-            config, args.out, object_spec=args.object, up_axis=args.up_axis, seed=args.seed
-        )
+    images = asyncio.run(
+        capture_snapshot(config, object_spec=args.object, up_axis=args.up_axis, seed=args.seed)
     )
-    for path in paths:
+    for path in save_images(images, args.out):
         print(path)
     return 0
 

@@ -26,15 +26,18 @@ TOUCH_WIDTH_M = 0.08
 """Finger opening at the stand-off: the pad then protrudes past the gripper body."""
 
 
-async def take_snapshot(
+async def capture_snapshot(
     config: Config,
-    out_dir: Path,
     *,
     object_spec: str | None = None,
     up_axis: str | None = None,
     seed: int | None = None,
 ) -> list[Path]:
-    """Render the Kinect views, touch the object once on its robot-facing side, save PNGs."""
+    """Render the Kinect views and touch the object once on its robot-facing side.
+
+    Returns RGB images by name: kinect_colour, kinect_depth (colourised), tactile and
+    tactile_reference (the raw GelSight frames, converted from BGR).
+    """
     sim = config.sim
     sim = dataclasses.replace(
         sim,
@@ -50,14 +53,13 @@ async def take_snapshot(
         sim=sim,
         rng=np.random.default_rng(sim.seed),
     )
-    out_dir.mkdir(parents=True, exist_ok=True)
     await devices.connect()
     try:
         frame = await devices.camera.read()
-        paths = [
-            _save(out_dir / "kinect_colour.png", frame.colour_rgb),
-            _save(out_dir / "kinect_depth.png", _colourise_depth(frame.depth_m)),
-        ]
+        images = {
+            "kinect_colour": frame.colour_rgb,
+            "kinect_depth": _colourise_depth(frame.depth_m),
+        }
         assert devices.world is not None
         await devices.gripper.home()
         world = devices.world
@@ -105,13 +107,11 @@ async def take_snapshot(
             touch.force_n,
         )
         tactile = await devices.tactile.read()
-        paths += [
-            _save(out_dir / "tactile.png", tactile.image_bgr[..., ::-1]),
-            _save(out_dir / "tactile_reference.png", reference.image_bgr[..., ::-1]),
-        ]
+        images["tactile"] = tactile.image_bgr[..., ::-1]
+        images["tactile_reference"] = reference.image_bgr[..., ::-1]
     finally:
         await devices.close()
-    return paths
+    return images
 
 
 def _colourise_depth(depth_m: np.ndarray) -> np.ndarray:
@@ -126,6 +126,12 @@ def _colourise_depth(depth_m: np.ndarray) -> np.ndarray:
     return rgb
 
 
-def _save(path: Path, image_rgb: np.ndarray) -> Path:
-    Image.fromarray(np.ascontiguousarray(image_rgb)).save(path)
-    return path
+def save_images(images: dict[str, np.ndarray], out_dir: Path) -> list[Path]:
+    """Write RGB images as ``<name>.png`` into ``out_dir``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name, image_rgb in images.items():
+        path = out_dir / f"{name}.png"
+        Image.fromarray(np.ascontiguousarray(image_rgb)).save(path)
+        paths.append(path)
+    return paths

@@ -372,10 +372,9 @@ class GelSightSimulator:
         mag_bin = np.minimum((magnitude / self._mag_step).astype(np.intp), self._n_bins - 1)
         sloped = np.flatnonzero(mag_bin > 0)
 
-        image = self._f0.astype(np.float32)
-        image += rng.standard_normal(image.shape, dtype=np.float32) * np.float32(
-            self.spec.noise_sigma
-        )
+        image = rng.standard_normal(self._f0.shape, dtype=np.float32)
+        image *= np.float32(self.spec.noise_sigma)
+        image += self._f0
         if sloped.size:
             direction = np.arctan2(d_row.ravel()[sloped], d_col.ravel()[sloped])
             dir_bin = np.minimum(

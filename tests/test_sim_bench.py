@@ -45,7 +45,7 @@ async def test_kinect_sees_the_object_at_the_paper_pose() -> None:
     assert tilt_deg == pytest.approx(30.0)
     # The object is in view, and its depth is the camera-to-object distance.
     assert first.silhouette is not None and first.silhouette.sum() > 500
-    rows, cols = np.nonzero(first.silhouette)
+    _, cols = np.nonzero(first.silhouette)
     assert abs(cols.mean() - width / 2) < width * 0.1
     object_depth = np.median(first.depth_m[first.silhouette & (first.depth_m > 0)])
     assert 0.6 < object_depth < 0.8
