@@ -146,7 +146,7 @@ def _bag(rng: np.random.Generator) -> Manifold:
     body = _rounded_rect(width, depth, rng.uniform(0.012, 0.025)).extrude(
         height, scale_top=top_scale
     )
-    # Handle: a tube arc rising from the top; its ends sink 1 cm into the body.
+    # Handle: a tube arc rising from the top; its ends are buried in the body.
     span = width * top_scale[0] * rng.uniform(0.25, 0.35)  # half the distance between the feet
     rise = rng.uniform(0.05, 0.08)
     handle = (
@@ -172,9 +172,9 @@ def _bottle(rng: np.random.Generator) -> Manifold:
     body_h = rng.uniform(0.10, 0.14)
     shoulder_h = rng.uniform(0.03, 0.05)
     neck_r = rng.uniform(0.010, 0.013)
-    neck_h = rng.uniform(0.02, 0.035)
+    neck_h = rng.uniform(0.025, 0.04)
     cap_r = neck_r + rng.uniform(0.0015, 0.003)
-    cap_h = rng.uniform(0.015, 0.022)
+    cap_h = neck_h * rng.uniform(0.5, 0.8)  # the cap covers the top of the neck only
     waist = rng.uniform(0.0, 0.1)  # some bottles are pinched in the middle
     bevel = 0.004
     z_body = np.linspace(bevel, body_h, 12)
@@ -353,7 +353,7 @@ def _earphone(rng: np.random.Generator) -> Manifold:
     left = earcup.rotate((0, -90, 0)).translate((-band_r + cup_t / 2, 0, cup_z))
     section = _rounded_rect(band_t, band_w, band_t * 0.45).translate((band_r, 0))
     band = section.revolve(_SEG_BIG // 2, 180).rotate((90, 0, 0))  # upper half circle
-    # Band ends sit at the cups' centre height, buried inside the cups.
+    # The band's ends sit just above the cups' centres, buried inside the cups.
     band = band.translate((0, 0, cup_z + cup_r * 0.3))
     cushion_r = band_r - band_t / 2 - 0.004
     cushion = (
@@ -514,10 +514,11 @@ def _mug(rng: np.random.Generator) -> Manifold:
     )
     # D-shaped handle: a 200-degree tube arc whose ends are buried in the wall; anything that
     # pokes into the cup is cut away with the cavity below.
-    z_low = height * rng.uniform(0.15, 0.25)
-    z_high = height * rng.uniform(0.75, 0.85)
+    z_low = height * rng.uniform(0.12, 0.2)
+    z_high = height * rng.uniform(0.8, 0.88)
     half_span = (z_high - z_low) / 2
-    reach = rng.uniform(0.03, 0.04)
+    # Scaling the arc to this reach also thickens the tube along x, by at most ~1.6x here.
+    reach = rng.uniform(0.028, 0.038)
     handle = (
         _ring_arc(half_span, rng.uniform(0.005, 0.007), 200)
         .scale((reach / half_span, 1, 1))

@@ -29,14 +29,14 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
 FloatImage = NDArray[np.float32]
 ImageBGR = NDArray[np.uint8]
 
-# Rays are cast on a grid with this pixel spacing and bilinearly interpolated in between: the
-# indentation of a smooth surface is nearly linear over 2 px (0.06 mm).
+# Rays are cast on a grid with this pixel spacing and bilinearly interpolated in between: over
+# 4 px (0.12 mm) a gently sloped surface curved with radius >= 2 mm is linear to ~1 um.
 _RAY_STRIDE_PX = 4
 # ...except in grid cells that touch the contact and whose corners differ by more than this
 # (steep or discontinuous surface) or straddle the contact boundary: there every pixel gets its
@@ -62,8 +62,8 @@ class GelPadSpec:
     gel_thickness_mm: float = 2.0
     # Deepest the gel can be compressed: beyond this the object bottoms out on the backing.
     max_indentation_mm: float = 1.5
-    # Width of the sink-in skirt around a contact. 0.5 mm best matches the ring around the real
-    # ball presses in Taxim's dataPack (the fit is flat between 0.4 and 0.9 mm).
+    # Width of the sink-in skirt around a contact. Rendering the real ball presses of Taxim's
+    # dataPack fits the ring around them best for 0.5-0.8 mm (0.3 mm is clearly worse).
     elastic_sigma_mm: float = 0.5
     # Silicone elastomers of GelSight pads are ~0.1-0.5 MPa.
     youngs_modulus_mpa: float = 0.3
@@ -98,7 +98,7 @@ class GelPadSpec:
         return self.image_height_px, self.image_width_px
 
     def pixel_to_pad_mm(
-        self, rows: NDArray[np.floating], cols: NDArray[np.floating]
+        self, rows: ArrayLike, cols: ArrayLike
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Pad-frame (x, y) in mm of pixel centres at (rows, cols); z=0 is the undeformed gel."""
         x = (np.asarray(cols, dtype=np.float64) - (self.image_width_px - 1) / 2) * self.mm_per_px
@@ -146,8 +146,8 @@ class GelSightSimulator:
             # Taxim fitted the image *difference* from the background as one quadratic
             # polynomial in the pixel position per (slope magnitude, slope direction) bin. Its
             # arrays are named after RGB but were fitted on OpenCV frames, so grad_r drives BGR
-            # channel 0 (blue) - taxim_torch swaps them for its RGB output; matching the real
-            # presses below confirms this order (the swapped order errs 10x more).
+            # channel 0 (blue) - taxim_torch swaps them for its RGB output. Rendering the real
+            # dataPack presses confirms it: the swapped order errs 4-7x more.
             self._n_bins = int(poly["bins"])
             coeffs = np.stack([poly["grad_r"], poly["grad_g"], poly["grad_b"]], axis=2)
         if coeffs.shape != (self._n_bins, self._n_bins, 3, 6):
@@ -162,8 +162,8 @@ class GelSightSimulator:
         self._mag_step = 0.5 * math.pi / (self._n_bins - 1)
         self._dir_step = 2.0 * math.pi / (self._n_bins - 1)
         # Where the gel is flat the real frame f0 is exact, but the fit's flat-bin prediction is
-        # not zero (mean 1-4, up to 38 units in the corners, where no calibration press
-        # reached). Rendering the difference to the flat bin keeps untouched and uniformly
+        # not zero (a few units on average, up to 38 near the image corners, where the quadratic
+        # extrapolates). Rendering the difference to the flat bin keeps untouched and uniformly
         # pressed gel equal to f0 and leaves no step at the edge of a contact's skirt.
         flat_dir_bin = math.floor(math.pi / self._dir_step)
         self._coeffs = (coeffs - coeffs[0, flat_dir_bin]).reshape(-1, 3, 6)
@@ -275,13 +275,15 @@ class GelSightSimulator:
         down to one pixel (Taxim's Gaussian pyramid, with the constraint applied everywhere).
         The gel cannot pass through the rigid object, so u >= d; inside the contact the
         smoothed field is lower and the surface is exactly the object's; around the contact
-        the smoothed field wins and the gel sinks in a skirt of width ~sigma, wider than the
-        geometric intersection, as in Hertz contact. The finer levels make the skirt meet the
-        object without a step, even at vertical walls (a box edge), where the gel wraps the
-        edge over a few pixels instead of following it. The peak indentation is kept exactly,
-        the contact region (u == d > 0) keeps its shape up to a thin rim, and a uniform press
-        stays uniform (the image border is padded with the nearest value: the gel continues
-        beyond the camera's view).
+        the smoothed field wins and the gel sinks in a skirt of width ~sigma. Near the rim of
+        the geometric intersection the gel has already lifted off the object, as in Hertz
+        contact: for balls of 2-6 mm pressed 0.5-1 mm the true contact (u == d) has 0.74-0.82
+        of the geometric radius (Hertz, elastic half-space: 0.71), and at the geometric radius,
+        where the gel departs most from the object, it lies 0.12-0.22 d deep (Hertz: 0.32 d).
+        The finer levels make the skirt meet the object without a step even at vertical walls
+        (a box edge), where the gel wraps the edge over a few pixels. The peak indentation is
+        kept exactly, the contact keeps its shape, and a uniform press stays uniform (the
+        image border is padded with the nearest value: the gel continues beyond the view).
         """
         geometric = np.asarray(geometric_mm, dtype=np.float32)
         if geometric.shape != self.spec.shape:
@@ -335,7 +337,7 @@ class GelSightSimulator:
         Each pixel is an independent spring of the gel column under it:
         F = sum(E * d / h * dA), E in MPa (= N/mm^2), d the pixel's indentation and h the gel
         thickness in mm, dA = mm_per_px^2 in mm^2. With the defaults a 2 mm ball pressed 0.5 mm
-        gives ~0.4 N, a flat face pressed 0.5 mm over the whole pad ~20 N. It ignores the
+        gives ~0.3 N, a flat face pressed 0.5 mm over the whole pad ~20 N. It ignores the
         in-plane coupling and incompressibility of the gel (real thin bonded layers are
         stiffer), so treat it as an order-of-magnitude, monotonic force estimate.
         """
