@@ -36,7 +36,7 @@ async def capture_snapshot(
     """Render the Kinect views and touch the object once on its robot-facing side.
 
     Returns RGB images by name: kinect_colour, kinect_depth (colourised), tactile and
-    tactile_reference (the raw GelSight frames, converted from BGR).
+    tactile_reference (the raw GelSight frames, converted from BGR), and their difference.
     """
     sim = config.sim
     sim = dataclasses.replace(
@@ -109,6 +109,11 @@ async def capture_snapshot(
         tactile = await devices.tactile.read()
         images["tactile"] = tactile.image_bgr[..., ::-1]
         images["tactile_reference"] = reference.image_bgr[..., ::-1]
+        # The raw change is a few grey levels on gently curved surfaces: amplify it to look at.
+        change = tactile.image_bgr.astype(np.int16) - reference.image_bgr.astype(np.int16)
+        images["tactile_difference_x3"] = np.clip(128 + 3 * change[..., ::-1], 0, 255).astype(
+            np.uint8
+        )
     finally:
         await devices.close()
     return images

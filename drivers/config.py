@@ -144,6 +144,9 @@ class SimConfig:
     """A shape-library category or a mesh file path (OBJ/STL/PLY/GLB)."""
     object_up_axis: str = "z"
     object_scale: float = 1.0
+    object_yaw_deg: float = 60.0
+    """Turn of the object about the vertical axis through the object point (a mug's handle
+    points along +x before it: 60 degrees shows it beside the body to the camera)."""
     seed: int = 0
     real_time_factor: float = 0.0
     """0 = motions complete instantly (tests), 1 = real time (demos)."""

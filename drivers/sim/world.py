@@ -17,7 +17,13 @@ from numpy.typing import NDArray
 
 from drivers.config import ArmConfig, GripperConfig, SensorConfig, SimConfig
 from drivers.tool import ToolBox, ToolModel
-from models.geometry import invert_transform, transform_points, ur_pose_to_matrix
+from models.geometry import (
+    invert_transform,
+    make_transform,
+    rotation_about_axis,
+    transform_points,
+    ur_pose_to_matrix,
+)
 from models.render import Scene, SceneObject, make_table
 from models.shapes import object_mesh
 
@@ -95,6 +101,9 @@ class SimWorld:
         """Build the object from the shape library (or a mesh file) at the world origin."""
         rng = np.random.default_rng(sim.seed)
         mesh = object_mesh(sim.object, rng, up_axis=sim.object_up_axis, scale=sim.object_scale)
+        mesh.apply_transform(
+            make_transform(rotation_about_axis((0, 0, 1), np.radians(sim.object_yaw_deg)))
+        )
         return cls(mesh, sim=sim, arm=arm, gripper=gripper, sensor=sensor)
 
     # --- poses ----------------------------------------------------------------------------------
