@@ -11,6 +11,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from controller.config import ConfigError, config_to_toml, load_config
+from controller.prior_commands import add_prior_commands
 
 log = logging.getLogger("touchshape")
 
@@ -67,6 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench_sim.add_argument("--frames", type=int, default=20, help="frames timed per measurement")
     bench_sim.add_argument("--json", type=Path, default=None, help="also write the JSON here")
     bench_sim.set_defaults(handler=_bench_sim)
+    add_prior_commands(groups, bench_commands)
     return parser
 
 

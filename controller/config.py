@@ -83,6 +83,37 @@ class LimitsConfig:
 
 
 @dataclass(frozen=True)
+class MotionConfig:
+    """How a touch is made (the paper: stand off on the surface normal, approach progressively,
+    make the final contact by opening the gripper slowly) and how the arm moves between touches."""
+
+    approach_distance_m: float = 0.06
+    """Pad distance from the target surface where the approach along the normal starts."""
+    standoff_m: float = 0.005
+    """Pad distance from the predicted surface where the arm stops and the fingers take over."""
+    touch_width_m: float = 0.08
+    """Finger opening during the arm's approach: the pad then protrudes past the gripper body."""
+    finger_speed_m_s: float = 0.005
+    """Finger opening speed for the final contact (the pad moves at half of it)."""
+    direct_move_max_angle_deg: float = 30.0
+    """Move directly between touches whose targets are closer than this around the vertical
+    axis through the object point; otherwise detour above the object."""
+    safe_height_margin_m: float = 0.05
+    """Detours keep every tool part this far above the highest point of the shape estimate."""
+    path_check_step_m: float = 0.01
+    """Spacing of the poses checked along every straight-line motion."""
+
+    def __post_init__(self) -> None:
+        if not 0 < self.standoff_m < self.approach_distance_m:
+            raise ValueError("need 0 < standoff_m < approach_distance_m")
+        positive = (self.finger_speed_m_s, self.safe_height_margin_m, self.path_check_step_m)
+        if min(positive) <= 0 or self.touch_width_m < 0:
+            raise ValueError("speeds, margins and steps must be positive")
+        if not 0 <= self.direct_move_max_angle_deg <= 180:
+            raise ValueError("direct_move_max_angle_deg must be in [0, 180]")
+
+
+@dataclass(frozen=True)
 class VoxelGridConfig:
     resolution: int = 64
     extent_m: float = 0.26
@@ -133,6 +164,7 @@ class Config:
     sensor: SensorConfig = field(default_factory=SensorConfig)
     gripper: GripperConfig = field(default_factory=GripperConfig)
     limits: LimitsConfig = field(default_factory=LimitsConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
     voxel_grid: VoxelGridConfig = field(default_factory=VoxelGridConfig)
     models: ModelsConfig = field(default_factory=ModelsConfig)
     messaging: MessagingConfig = field(default_factory=MessagingConfig)

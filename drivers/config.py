@@ -30,7 +30,8 @@ class ArmConfig:
     """Robot base in the world as a UR pose [m, axis-angle rad]; `touchshape calibrate robot`."""
     tcp_offset: Vec6 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     """TCP relative to the flange; touchshape plans with the flange and its own tool model."""
-    home_joints_rad: Vec6 = (1.5708, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
+    home_joints_rad: Vec6 = (-1.5708, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
+    """Tool pointing down 43 cm above the object point with the default base pose."""
     max_joint_speed_rad_s: float = 3.14
     """Hardware limit of the UR5 (180 deg/s); the controller's limits are stricter."""
     control_frequency_hz: float = 125.0

@@ -1,0 +1,193 @@
+"""Safety checks and touch motion planning: every pose checked, detours around the object, and
+planned motions that the simulated arm executes without a protective stop."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from controller.config import Config, LimitsConfig
+from controller.motion import MotionPlanner
+from controller.safety import (
+    Obstacles,
+    SafetyViolation,
+    check_clearance,
+    check_force,
+    check_reachable,
+    check_speed,
+    check_workspace,
+)
+from drivers.config import ArmConfig, GripperConfig, SensorConfig, SimConfig
+from drivers.sim.arm import SimUR5
+from drivers.sim.gelsight import gel_pad_spec
+from drivers.sim.gripper import SimWSG50
+from drivers.sim.world import SimWorld
+from drivers.tool import ToolModel
+from models.geometry import (
+    make_transform,
+    matrix_to_ur_pose,
+    radial_angle_about_vertical,
+    ur_pose_to_matrix,
+)
+from models.tactile_sim import GelSightSimulator
+
+CONFIG = Config()
+TOOL = ToolModel(GripperConfig(), SensorConfig())
+POSE_WORLD_BASE = ur_pose_to_matrix(ArmConfig().pose_world_base)
+HOME = np.asarray(ArmConfig().home_joints_rad)
+DOWN = make_transform(np.diag([1.0, -1.0, -1.0]))  # tool z pointing down
+
+
+def tool_down_at(x: float, y: float, z: float) -> np.ndarray:
+    pose = DOWN.copy()
+    pose[:3, 3] = (x, y, z)
+    return pose
+
+
+def box_obstacles(mesh: trimesh.Trimesh, pitch_m: float = 0.004) -> Obstacles:
+    """Occupied points of a mesh, as a perfect shape estimate would give them."""
+    return Obstacles(mesh.voxelized(pitch_m).fill().points)
+
+
+def planner() -> MotionPlanner:
+    return MotionPlanner(
+        tool=TOOL,
+        limits=CONFIG.limits,
+        motion=CONFIG.motion,
+        pose_world_base=POSE_WORLD_BASE,
+        stroke_m=GripperConfig().stroke_m,
+    )
+
+
+def test_limits_are_enforced() -> None:
+    limits = LimitsConfig()
+    check_workspace(tool_down_at(0.0, 0.0, 0.3), limits)
+    with pytest.raises(SafetyViolation, match="workspace"):
+        check_workspace(tool_down_at(0.0, 0.0, 0.9), limits)
+    with pytest.raises(SafetyViolation, match="TCP speed"):
+        check_speed(0.5, limits.max_tcp_speed_m_s)
+    with pytest.raises(SafetyViolation):
+        check_speed(0.0, limits.max_tcp_speed_m_s)
+    check_force(limits.max_force_n - 1, limits)
+    with pytest.raises(SafetyViolation, match="force"):
+        check_force(limits.max_force_n + 1, limits)
+    with pytest.raises(SafetyViolation, match="reach"):
+        check_reachable(tool_down_at(1.5, 0.0, 0.3), POSE_WORLD_BASE, HOME)
+
+
+def test_table_clearance_uses_the_lowest_tool_point() -> None:
+    limits = LimitsConfig()
+    tip_m = TOOL.finger_tip_z_m  # with the tool down, the fingertips are the lowest point
+    check_clearance(tool_down_at(0, 0, tip_m + 0.011), 0.08, TOOL, Obstacles.none(), limits)
+    with pytest.raises(SafetyViolation, match="above the table"):
+        check_clearance(tool_down_at(0, 0, tip_m + 0.009), 0.08, TOOL, Obstacles.none(), limits)
+
+
+def test_shape_clearance_and_exempt_parts() -> None:
+    limits = LimitsConfig()
+    pose = tool_down_at(0.0, 0.0, 0.4)
+    near_body = Obstacles(np.array([[0.0, 0.0, 0.4 - 0.005]]))  # 5 mm past the flange face
+    with pytest.raises(SafetyViolation, match="gripper_body"):
+        check_clearance(pose, 0.08, TOOL, near_body, limits)
+    # 5 mm in front of the gel's rigid backing: only the sensor parts may be that close.
+    pad = pose @ TOOL.pose_tcp_pad(0.08)
+    in_front_of_pad = Obstacles(pad[:3, 3][None] + 0.005 * pad[:3, 2])
+    with pytest.raises(SafetyViolation, match="gelsight_housing"):
+        check_clearance(pose, 0.08, TOOL, in_front_of_pad, limits)
+    check_clearance(
+        pose,
+        0.08,
+        TOOL,
+        in_front_of_pad,
+        limits,
+        exempt_parts=("gelsight_housing", "finger_sensor_side"),
+    )
+
+
+def test_touch_geometry_faces_the_target() -> None:
+    touch = planner().touch_geometry((0.0, -0.04, 0.05), (0.0, 1.0, 0.0))
+    pad = touch.pose_world_tcp_standoff @ TOOL.pose_tcp_pad(CONFIG.motion.touch_width_m)
+    np.testing.assert_allclose(pad[:3, 2], [0, 1, 0], atol=1e-12)
+    np.testing.assert_allclose(pad[:3, 3], [0.0, -0.045, 0.05], atol=1e-12)
+    np.testing.assert_allclose(touch.pad_start_world, [0.0, -0.1, 0.05], atol=1e-12)
+    # The fingers open 15 mm more on each side: the pad can reach 10 mm past the target.
+    np.testing.assert_allclose(touch.pad_reach_world, [0.0, -0.03, 0.05], atol=1e-12)
+
+
+def test_far_targets_detour_above_the_object_and_near_ones_move_directly() -> None:
+    mesh = trimesh.creation.cylinder(
+        radius=0.04, height=0.1, transform=make_transform(None, (0, 0, 0.05))
+    )
+    obstacles = box_obstacles(mesh)
+    plan = planner()
+    first = plan.touch_geometry((0.0, -0.04, 0.06), (0.0, 1.0, 0.0))
+    joints = check_reachable(first.pose_world_tcp_start, POSE_WORLD_BASE, HOME)
+    # A target a quarter turn around the object: detour.
+    side = plan.touch_geometry((0.04, 0.0, 0.06), (-1.0, 0.0, 0.0))
+    assert radial_angle_about_vertical(first.target_world, side.target_world) > np.radians(80)
+    waypoints = plan.plan_transit(first.pose_world_tcp_start, joints, side, obstacles)
+    assert [w.label for w in waypoints] == ["lift", "across", "descend"]
+    top = mesh.bounds[1, 2]
+    lowest = min(w.pose_world_tcp[2, 3] for w in waypoints[:2]) - TOOL.finger_tip_z_m
+    assert lowest >= top + CONFIG.motion.safe_height_margin_m - 1e-9
+    # A target 15 degrees further round: straight there.
+    angle = np.radians(15)
+    near = plan.touch_geometry(
+        (0.04 * np.sin(angle), -0.04 * np.cos(angle), 0.06), (-np.sin(angle), np.cos(angle), 0.0)
+    )
+    waypoints = plan.plan_transit(first.pose_world_tcp_start, joints, near, obstacles)
+    assert [w.label for w in waypoints] == ["direct"]
+
+
+def test_unreachable_touch_is_rejected_before_moving() -> None:
+    plan = planner()
+    touch = plan.touch_geometry((0.0, 0.9, 0.05), (0.0, -1.0, 0.0))  # far beyond the reach
+    with pytest.raises(SafetyViolation):
+        plan.plan_transit(tool_down_at(0.0, -0.2, 0.4), HOME, touch, Obstacles.none())
+
+
+async def test_planned_touch_runs_on_the_sim_arm_without_protective_stop() -> None:
+    mesh = trimesh.creation.cylinder(
+        radius=0.04, height=0.1, transform=make_transform(None, (0, 0, 0.05))
+    )
+    world = SimWorld(
+        mesh, sim=SimConfig(), arm=ArmConfig(), gripper=GripperConfig(), sensor=SensorConfig()
+    )
+    arm = SimUR5(world, ArmConfig())
+    gel = GelSightSimulator(gel_pad_spec(SensorConfig()))
+    gripper = SimWSG50(world, GripperConfig(), gel)
+    await arm.connect()
+    await gripper.connect()
+    await gripper.home()
+    await gripper.move(CONFIG.motion.touch_width_m, speed_m_s=0.1, force_limit_n=40, timeout_s=5)
+    obstacles = box_obstacles(mesh)
+    plan = planner()
+    pose = world.pose_world_tcp()
+    joints = world.joints_rad
+    for target, direction in (((0.0, -0.04, 0.07), (0, 1, 0)), ((0.04, 0.0, 0.07), (-1, 0, 0))):
+        touch = plan.touch_geometry(target, direction)
+        waypoints = plan.plan_transit(pose, joints, touch, obstacles)
+        waypoints.append(plan.plan_approach(touch, waypoints[-1].joints_rad, obstacles))
+        for waypoint in waypoints:
+            pose_base = np.linalg.inv(POSE_WORLD_BASE) @ waypoint.pose_world_tcp
+            await arm.move_linear(
+                matrix_to_ur_pose(pose_base),
+                speed_m_s=waypoint.speed_m_s,
+                acceleration_m_s2=1.0,
+                timeout_s=60,
+            )
+            assert not (await arm.state()).protective_stopped
+        result = await gripper.move(0.11, speed_m_s=0.005, force_limit_n=5.0, timeout_s=30)
+        assert result.blocked, "the pad should touch the cylinder"
+        await gripper.move(
+            CONFIG.motion.touch_width_m, speed_m_s=0.05, force_limit_n=40, timeout_s=5
+        )
+        retract = plan.plan_retract(touch, world.joints_rad, obstacles)
+        await arm.move_linear(
+            matrix_to_ur_pose(np.linalg.inv(POSE_WORLD_BASE) @ retract.pose_world_tcp),
+            speed_m_s=retract.speed_m_s,
+            acceleration_m_s2=1.0,
+            timeout_s=60,
+        )
+        pose, joints = world.pose_world_tcp(), world.joints_rad
