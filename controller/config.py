@@ -144,10 +144,32 @@ class ModelsConfig:
 
 @dataclass(frozen=True)
 class MessagingConfig:
+    """Eclipse Zenoh session of the service. Secrets stay out of this file: the password and
+    the accepted-credentials dictionary are read from the files named here."""
+
     mode: Literal["peer", "client"] = "peer"
     listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     connect: tuple[str, ...] = ()
     multicast_scouting: bool = False
+    user: str = ""
+    """User name this session presents to its peers (Zenoh usrpwd authentication)."""
+    password_file: str = ""
+    """File holding the password of ``user``."""
+    credentials_file: str = ""
+    """Zenoh dictionary file of accepted ``user:password`` lines; when set, peers without
+    valid credentials cannot open a session with the service."""
+    tls_root_ca_certificate: str = ""
+    tls_certificate: str = ""
+    tls_private_key: str = ""
+    """PEM files for tls/ endpoints (certificate and key also used for mutual TLS)."""
+    tls_mutual: bool = False
+    open_timeout_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        if bool(self.user) != bool(self.password_file):
+            raise ValueError("user and password_file are set together")
+        if self.open_timeout_s <= 0:
+            raise ValueError("open_timeout_s must be positive")
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,220 @@
+"""Session recording: one Rerun recording (logs/<session>.rrd) and a folder of artifacts
+(logs/<session>/) per exploration session. The one module that talks to Rerun.
+
+Entity paths mirror the frame tree (``world/kinect``, ``world/ur5/tcp``, ``world/ur5/pad``);
+timelines are ``touch`` (sequence) and ``time`` (wall clock). ``touches.jsonl`` is appended and
+flushed as each touch completes, so a crash loses nothing already measured.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+from numpy.typing import NDArray
+
+from drivers.base import RGBDFrame
+from models.geometry import VoxelGrid
+
+# Rerun's SDK would otherwise ask about usage analytics on first use of the viewer tools.
+os.environ.setdefault("RERUN_ANALYTICS", "0")
+
+
+def _confidence_colours(probabilities: NDArray[np.floating]) -> NDArray[np.uint8]:
+    """Red (unsure, v near 0.5) to green (sure) for occupied voxels."""
+    confidence = np.clip(np.abs(probabilities - 0.5) * 2.0, 0.0, 1.0)
+    colours = np.stack([1.0 - confidence, confidence, np.full_like(confidence, 0.2)], axis=-1)
+    return (colours * 255).astype(np.uint8)
+
+
+def _blueprint() -> rrb.Blueprint:
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(name="world", origin="world"),
+            rrb.Vertical(
+                rrb.Spatial2DView(name="kinect", origin="world/kinect"),
+                rrb.Spatial2DView(name="gelsight", origin="gelsight"),
+                rrb.TimeSeriesView(name="metrics", origin="metrics"),
+                rrb.TextLogView(name="log", origin="log"),
+            ),
+            column_shares=[3, 2],
+        ),
+        collapse_panels=True,
+    )
+
+
+class SessionRecorder:
+    """Records one session; create it at session start and ``close()`` it at the end."""
+
+    def __init__(self, logs_dir: Path, session_id: str) -> None:
+        self.session_id = session_id
+        self.rrd_path = logs_dir / f"{session_id}.rrd"
+        self.artifacts_dir = logs_dir / session_id
+        self.artifacts_dir.mkdir(parents=True, exist_ok=True)
+        self.touches_path = self.artifacts_dir / "touches.jsonl"
+        self._rec = rr.RecordingStream("touchshape", recording_id=session_id)
+        self._rec.save(str(self.rrd_path))
+        self._rec.send_blueprint(_blueprint())
+        self._touch = 0
+        self._touches_file = self.touches_path.open("a", encoding="utf-8")
+
+    # --- timelines ------------------------------------------------------------------------------
+
+    def _now(self) -> None:
+        # set_time is per thread and per call site: set it right before each log, no await
+        # in between (the recorder is only used from the event loop thread).
+        self._rec.set_time("touch", sequence=self._touch)
+        self._rec.set_time("time", timestamp=time.time())
+
+    def set_touch(self, touch_index: int) -> None:
+        self._touch = touch_index
+
+    # --- static calibration ---------------------------------------------------------------------
+
+    def log_setup(
+        self,
+        pose_world_base: NDArray[np.float64],
+        grid: VoxelGrid,
+        object_mesh_world: Any | None = None,
+    ) -> None:
+        """Robot base, voxel grid bounds and (simulation only) the ground-truth object."""
+        self._rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self._rec.log(
+            "world/ur5",
+            rr.Transform3D(translation=pose_world_base[:3, 3], mat3x3=pose_world_base[:3, :3]),
+            static=True,
+        )
+        corners = grid.voxel_to_world(np.array([[0, 0, 0], [grid.resolution] * 3], dtype=float))
+        self._rec.log(
+            "world/voxel_grid",
+            rr.Boxes3D(
+                mins=[corners.min(axis=0)],
+                sizes=[np.abs(corners[1] - corners[0])],
+                colors=[(120, 120, 120)],
+            ),
+            static=True,
+        )
+        if object_mesh_world is not None:
+            self._rec.log(
+                "world/ground_truth",
+                rr.Mesh3D(
+                    vertex_positions=object_mesh_world.vertices,
+                    triangle_indices=object_mesh_world.faces,
+                    albedo_factor=(200, 200, 200, 80),
+                ),
+                static=True,
+            )
+
+    # --- per-session data -----------------------------------------------------------------------
+
+    def log_state(self, state: str, previous: str | None, detail: str = "") -> None:
+        self._now()
+        text = f"{previous or '-'} -> {state}" + (f": {detail}" if detail else "")
+        level = "ERROR" if state == "fault" else "INFO"
+        self._rec.log("log", rr.TextLog(text, level=level))
+
+    def log_camera(self, frame: RGBDFrame) -> None:
+        self._now()
+        pose = frame.pose_world_camera
+        k = frame.intrinsics
+        self._rec.log("world/kinect", rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
+        self._rec.log(
+            "world/kinect",
+            rr.Pinhole(
+                focal_length=(k.fx, k.fy),
+                principal_point=(k.cx, k.cy),
+                width=k.width,
+                height=k.height,
+            ),
+        )
+        self._rec.log("world/kinect/rgb", rr.Image(frame.colour_rgb))
+        self._rec.log("world/kinect/depth", rr.DepthImage(frame.depth_m, meter=1.0))
+
+    def log_sketches(self, sketches: dict[str, NDArray]) -> None:
+        """2.5D sketches (network resolution) by name: depth, normals, silhouette."""
+        self._now()
+        for name, image in sketches.items():
+            self._rec.log(f"sketches/{name}", rr.Image(np.asarray(image)))
+
+    def log_shape(self, probabilities: NDArray[np.floating], grid: VoxelGrid) -> None:
+        """Occupied voxels (v > 0.5) as points coloured by confidence |v - 0.5|."""
+        self._now()
+        occupied = np.argwhere(probabilities > 0.5)
+        points = grid.voxel_to_world(occupied + 0.5)
+        colours = _confidence_colours(probabilities[tuple(occupied.T)])
+        self._rec.log(
+            "world/shape",
+            rr.Points3D(points, colors=colours, radii=grid.voxel_size_m / 2),
+        )
+
+    def log_robot(
+        self, pose_world_tcp: NDArray[np.float64], pose_world_pad: NDArray[np.float64]
+    ) -> None:
+        self._now()
+        for path, pose in (("world/tcp", pose_world_tcp), ("world/pad", pose_world_pad)):
+            self._rec.log(
+                path,
+                rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]),
+                rr.TransformAxes3D(0.03),
+            )
+
+    def log_touch(self, record: dict[str, Any], rays_world: NDArray[np.float64] | None) -> None:
+        """One completed touch: its record (appended to touches.jsonl now) and its rays."""
+        self._now()
+        self._touches_file.write(json.dumps(record) + "\n")
+        self._touches_file.flush()
+        os.fsync(self._touches_file.fileno())
+        target = np.asarray(record["target_world"])
+        direction = np.asarray(record["direction_world"])
+        self._rec.log(
+            "world/touch/target",
+            rr.Arrows3D(origins=[target - 0.05 * direction], vectors=[0.05 * direction]),
+        )
+        if record.get("contact_point_world") is not None:
+            self._rec.log(
+                "world/touch/contact",
+                rr.Points3D([record["contact_point_world"]], colors=[(255, 200, 0)], radii=0.003),
+            )
+        if rays_world is not None and len(rays_world):
+            self._rec.log("world/touch/rays", rr.LineStrips3D(rays_world))
+
+    def log_tactile(
+        self, image_bgr: NDArray[np.uint8], height_map_mm: NDArray[np.floating] | None
+    ) -> None:
+        self._now()
+        self._rec.log("gelsight/image", rr.Image(image_bgr[..., ::-1]))
+        if height_map_mm is not None:
+            self._rec.log("gelsight/height_mm", rr.DepthImage(height_map_mm, meter=1.0))
+
+    def log_metric(self, name: str, value: float) -> None:
+        self._now()
+        self._rec.log(f"metrics/{name}", rr.Scalars(value))
+
+    # --- artifacts ------------------------------------------------------------------------------
+
+    def save_voxels(self, probabilities: NDArray[np.floating], grid: VoxelGrid) -> Path:
+        path = self.artifacts_dir / "voxels.npz"
+        np.savez_compressed(
+            path,
+            probabilities=probabilities.astype(np.float16),
+            matrix_world_voxel=grid.matrix_world_voxel,
+        )
+        return path
+
+    def save_summary(self, summary: dict[str, Any]) -> Path:
+        path = self.artifacts_dir / "summary.json"
+        temporary = path.with_suffix(".json.tmp")
+        temporary.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+        temporary.replace(path)
+        return path
+
+    def close(self) -> None:
+        self._touches_file.close()
+        self._rec.flush()
+        rr.disconnect(recording=self._rec)

@@ -1,0 +1,247 @@
+"""The long-running service: devices, the Zenoh API and one exploration session at a time.
+
+``TouchshapeService.run`` connects the devices, declares the API and serves until its stop
+event is set (``touchshape serve`` sets it on SIGINT/SIGTERM); then it aborts a running
+session (stopping all motion), closes Zenoh and the devices, and returns.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import logging
+import time
+import uuid
+import zlib
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from controller.config import Config
+from controller.messaging import (
+    ExploreRequest,
+    RequestError,
+    ServiceApi,
+    parse_explore_request,
+    zenoh_config,
+)
+from controller.perception import Perception, ShapeEstimate
+from controller.recording import SessionRecorder
+from controller.session import ExplorationSession, State
+from drivers.factory import Devices, make_devices
+
+log = logging.getLogger(__name__)
+
+PerceptionFactory = Callable[[Config, Devices], Perception]
+
+
+def encode_shape(session_id: str, touch: int, estimate: ShapeEstimate) -> dict[str, Any]:
+    """The ``shape`` publication (docs/api.md): occupancy probabilities quantised to uint8
+    (v * 255), C order [i][j][k], zlib-compressed and base64-encoded, with the 4x4 affine that
+    maps continuous voxel coordinates to world metres."""
+    quantised = np.clip(np.round(estimate.probabilities * 255), 0, 255).astype(np.uint8)
+    return {
+        "session": session_id,
+        "touch": touch,
+        "resolution": int(quantised.shape[0]),
+        "matrix_world_voxel": estimate.grid.matrix_world_voxel.tolist(),
+        "encoding": "uint8-probability-x255/C-order-ijk/zlib/base64",
+        "data": base64.b64encode(zlib.compress(quantised.tobytes(), 6)).decode("ascii"),
+    }
+
+
+def decode_shape(message: dict[str, Any]) -> np.ndarray:
+    """Probabilities (float32, N^3) from a ``shape`` publication."""
+    resolution = message["resolution"]
+    raw = zlib.decompress(base64.b64decode(message["data"]))
+    quantised = np.frombuffer(raw, dtype=np.uint8).reshape((resolution,) * 3)
+    return quantised.astype(np.float32) / 255.0
+
+
+class TouchshapeService:
+    """Owns the devices and at most one running session."""
+
+    def __init__(
+        self,
+        config: Config,
+        perception_factory: PerceptionFactory,
+        *,
+        logs_dir: Path | None = None,
+        rng_seed: int = 0,
+    ) -> None:
+        self.config = config
+        self.perception_factory = perception_factory
+        self.logs_dir = Path(logs_dir or config.logging.dir)
+        self.rng_seed = rng_seed
+        self.devices: Devices | None = None
+        self.perception: Perception | None = None
+        self.api: ServiceApi | None = None
+        self.session: ExplorationSession | None = None
+        self._session_task: asyncio.Task[dict[str, Any]] | None = None
+        self._abort = asyncio.Event()
+        self.results: list[dict[str, Any]] = []
+        self.defaults = ExploreRequest(prior=config.models.prior)
+
+    # --- lifecycle ------------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Connect and home the devices and build the perception (no Zenoh)."""
+        config = self.config
+        self.devices = make_devices(
+            arm=config.robot.arm,
+            gripper=config.gripper,
+            sensor=config.sensor,
+            camera=config.cameras.rgbd,
+            sim=config.sim,
+            rng=np.random.default_rng(self.rng_seed),
+        )
+        await self.devices.connect()
+        await self.devices.gripper.home()
+        self.perception = await asyncio.to_thread(self.perception_factory, config, self.devices)
+
+    async def stop(self) -> None:
+        await self.abort_session()
+        if self.devices is not None:
+            await self.devices.close()
+            self.devices = None
+
+    async def serve(self, stop: asyncio.Event, ready: asyncio.Event | None = None) -> None:
+        """Serve the Zenoh API until ``stop`` is set."""
+        await self.start()
+        loop = asyncio.get_running_loop()
+        session = await asyncio.to_thread(zenoh.open, zenoh_config(self.config.messaging))
+        try:
+            self.api = ServiceApi(
+                session,
+                self.config.robot.id,
+                loop,
+                {"explore": self._on_explore, "abort": self._on_abort, "status": self._on_status},
+            )
+            self._publish("state", self._state_message(State.IDLE, None))
+            if ready is not None:
+                ready.set()
+            await stop.wait()
+        finally:
+            await self.stop()
+            if self.api is not None:
+                await self.api.close()
+                self.api = None
+            await asyncio.to_thread(session.close)
+
+    # --- sessions -------------------------------------------------------------------------------
+
+    def start_session(self, request: ExploreRequest) -> str:
+        """Start a session in the background; RuntimeError when one is running."""
+        if self.busy:
+            assert self.session is not None
+            raise RuntimeError(f"busy: session {self.session.session_id} is running")
+        assert self.devices is not None and self.perception is not None
+        session_id = time.strftime("%Y%m%d-%H%M%S-") + uuid.uuid4().hex[:6]
+        self.logs_dir.mkdir(parents=True, exist_ok=True)
+        recorder = SessionRecorder(self.logs_dir, session_id)
+        world = self.devices.world
+        session = ExplorationSession(
+            session_id=session_id,
+            request=request,
+            config=self.config,
+            devices=self.devices,
+            perception=self.perception,
+            recorder=recorder,
+            publish=self._publish,
+            publish_shape=lambda estimate: self._publish(
+                "shape", encode_shape(session_id, session.touch_count, estimate)
+            ),
+        )
+        camera_position = self.config.cameras.rgbd.pose_world_camera()[:3, 3]
+        grid = self.config.voxel_grid.grid(tuple(camera_position))
+        recorder.log_setup(
+            session.pose_world_base, grid, world.object_mesh_world if world is not None else None
+        )
+        self.session = session
+        self._abort = asyncio.Event()
+        self._session_task = asyncio.create_task(
+            self._run_session(session, recorder), name=f"session-{session_id}"
+        )
+        return session_id
+
+    async def _run_session(
+        self, session: ExplorationSession, recorder: SessionRecorder
+    ) -> dict[str, Any]:
+        try:
+            summary = await session.run(self._abort)
+            summary["artifacts"] = self._save_artifacts(session, recorder)
+        finally:
+            recorder.close()
+        summary["artifacts"]["summary"] = str(recorder.save_summary(summary))
+        session.finish()
+        self.results.append(summary)
+        self._publish("result", summary)
+        return summary
+
+    def _save_artifacts(
+        self, session: ExplorationSession, recorder: SessionRecorder
+    ) -> dict[str, str]:
+        artifacts = {
+            "recording": str(recorder.rrd_path),
+            "touches": str(recorder.touches_path),
+        }
+        if session.estimate is not None:
+            estimate = session.estimate
+            artifacts["voxels"] = str(recorder.save_voxels(estimate.probabilities, estimate.grid))
+        return artifacts
+
+    async def wait_session(self) -> dict[str, Any] | None:
+        if self._session_task is None:
+            return None
+        return await self._session_task
+
+    async def abort_session(self) -> bool:
+        if not self.busy:
+            return False
+        self._abort.set()
+        await asyncio.gather(self._session_task, return_exceptions=True)  # type: ignore[arg-type]
+        return True
+
+    @property
+    def busy(self) -> bool:
+        return self._session_task is not None and not self._session_task.done()
+
+    # --- Zenoh handlers -------------------------------------------------------------------------
+
+    async def _on_explore(self, payload: bytes) -> dict[str, Any]:
+        try:
+            request = parse_explore_request(payload, self.defaults)
+            session_id = self.start_session(request)
+        except (RequestError, RuntimeError, ValueError) as error:
+            return {"accepted": False, "error": str(error)}
+        return {"accepted": True, "session": session_id}
+
+    async def _on_abort(self, payload: bytes) -> dict[str, Any]:
+        session_id = self.session.session_id if self.session is not None else None
+        return {"aborted": await self.abort_session(), "session": session_id}
+
+    async def _on_status(self, payload: bytes) -> dict[str, Any]:
+        session = self.session
+        return {
+            "state": str(session.state) if session is not None else str(State.IDLE),
+            "session": session.session_id if session is not None else None,
+            "touch": session.touch_count if session is not None else 0,
+            "busy": self.busy,
+            "sessions_completed": len(self.results),
+        }
+
+    def _state_message(self, state: State, session_id: str | None) -> dict[str, Any]:
+        return {
+            "session": session_id,
+            "state": str(state),
+            "previous": None,
+            "touch": 0,
+            "time": time.time(),
+        }
+
+    def _publish(self, name: str, body: dict[str, Any]) -> None:
+        if self.api is not None:
+            self.api.publish_json(name, body)

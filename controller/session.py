@@ -1,0 +1,507 @@
+"""One exploration session: the finite-state controller of the paper's loop.
+
+idle -> capture -> reconstruct -> select -> approach -> touch -> refine -> select ... -> done,
+plus fault and aborted from any working state (see ``TRANSITIONS``). Each state is an async
+step with a timeout. Perception runs in worker threads so the event loop (Zenoh replies, force
+monitoring) never waits on it. Every transition is published and recorded.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Any
+
+import numpy as np
+
+from controller.config import Config
+from controller.messaging import ExploreRequest
+from controller.motion import MotionPlanner, TouchGeometry, Waypoint
+from controller.perception import (
+    Perception,
+    ShapeEstimate,
+    TouchMeasurement,
+    TouchOutcome,
+    TouchTarget,
+)
+from controller.recording import SessionRecorder
+from controller.safety import Obstacles, SafetyViolation, check_force, check_reachable
+from drivers.base import DeviceError, TactileFrame
+from drivers.factory import Devices
+from drivers.tool import ToolModel
+from models.geometry import invert_transform, matrix_to_ur_pose, ur_pose_to_matrix
+
+log = logging.getLogger(__name__)
+
+
+class State(StrEnum):
+    IDLE = "idle"
+    CAPTURE = "capture"
+    RECONSTRUCT = "reconstruct"
+    SELECT = "select"
+    APPROACH = "approach"
+    TOUCH = "touch"
+    REFINE = "refine"
+    DONE = "done"
+    FAULT = "fault"
+    ABORTED = "aborted"
+
+
+WORKING_STATES = (
+    State.CAPTURE,
+    State.RECONSTRUCT,
+    State.SELECT,
+    State.APPROACH,
+    State.TOUCH,
+    State.REFINE,
+)
+TRANSITIONS: dict[State, frozenset[State]] = {
+    State.IDLE: frozenset({State.CAPTURE}),
+    State.CAPTURE: frozenset({State.RECONSTRUCT}),
+    State.RECONSTRUCT: frozenset({State.SELECT}),
+    State.SELECT: frozenset({State.APPROACH, State.DONE}),
+    # Back to select when the planner refuses the motion to a target (it is then excluded).
+    State.APPROACH: frozenset({State.TOUCH, State.SELECT}),
+    State.TOUCH: frozenset({State.REFINE}),
+    State.REFINE: frozenset({State.SELECT, State.DONE}),
+    State.DONE: frozenset({State.IDLE}),
+    State.FAULT: frozenset({State.IDLE}),
+    State.ABORTED: frozenset({State.IDLE}),
+}
+for _working in WORKING_STATES:
+    TRANSITIONS[_working] |= {State.FAULT, State.ABORTED}
+
+STEP_TIMEOUT_S = {
+    State.CAPTURE: 30.0,
+    State.RECONSTRUCT: 60.0,
+    State.SELECT: 60.0,
+    State.APPROACH: 180.0,
+    State.TOUCH: 180.0,
+    State.REFINE: 60.0,
+}
+"""Wall-clock limit of each working state; past it the session faults."""
+CONVERGED_AFTER_UNCHANGED_TOUCHES = 2
+"""The session ends early when this many touches in a row flipped no voxel across 0.5: the
+shape has stopped changing."""
+REJECTED_TARGET_RADIUS_M = 0.01
+"""Targets within this distance of one the planner refused are not proposed again."""
+ACCELERATION_M_S2 = 0.5
+
+
+class SessionFault(RuntimeError):
+    """A session stopped on a fault; the message says which device or check."""
+
+
+@dataclass
+class SessionTimes:
+    """Wall-clock seconds spent computing (perception) and moving (device commands)."""
+
+    compute_s: float = 0.0
+    motion_s: float = 0.0
+    per_touch_compute_s: list[float] = field(default_factory=list)
+    per_touch_motion_s: list[float] = field(default_factory=list)
+
+
+Publish = Callable[[str, dict[str, Any]], None]
+
+
+class ExplorationSession:
+    """Runs one session on connected devices; ``run`` returns the summary."""
+
+    def __init__(
+        self,
+        *,
+        session_id: str,
+        request: ExploreRequest,
+        config: Config,
+        devices: Devices,
+        perception: Perception,
+        recorder: SessionRecorder,
+        publish: Publish,
+        publish_shape: Callable[[ShapeEstimate], None] = lambda estimate: None,
+    ) -> None:
+        self.session_id = session_id
+        self.request = request
+        self.config = config
+        self.devices = devices
+        self.perception = perception
+        self.recorder = recorder
+        self.publish = publish
+        self.publish_shape = publish_shape
+        self.pose_world_base = ur_pose_to_matrix(config.robot.arm.pose_world_base)
+        self.tool = ToolModel(config.gripper, config.sensor)
+        self.planner = MotionPlanner(
+            tool=self.tool,
+            limits=config.limits,
+            motion=config.motion,
+            pose_world_base=self.pose_world_base,
+            stroke_m=config.gripper.stroke_m,
+            object_point_world=config.voxel_grid.object_point_world,
+        )
+        self.state = State.IDLE
+        self.touch_count = 0
+        self.estimate: ShapeEstimate | None = None
+        self.outcomes: list[TouchOutcome] = []
+        self.times = SessionTimes()
+        self.error: str | None = None
+        self._frame = None
+        self._reference: TactileFrame | None = None
+        self._target: TouchTarget | None = None
+        self._touch: TouchGeometry | None = None
+        self._early_contact = False
+        self._rejected: list[np.ndarray] = []
+        self._unchanged_touches = 0
+
+    # --- the loop -------------------------------------------------------------------------------
+
+    async def run(self, abort: asyncio.Event) -> dict[str, Any]:
+        """Run to done, fault or aborted; the robot is stopped and clear of the object after."""
+        steps: dict[State, Callable[[], Awaitable[State]]] = {
+            State.CAPTURE: self._capture,
+            State.RECONSTRUCT: self._reconstruct,
+            State.SELECT: self._select,
+            State.APPROACH: self._approach,
+            State.TOUCH: self._touch_step,
+            State.REFINE: self._refine,
+        }
+        self._transition(State.CAPTURE)
+        while self.state in steps:
+            step = asyncio.create_task(steps[self.state](), name=f"{self.session_id}:{self.state}")
+            aborted = asyncio.create_task(abort.wait())
+            try:
+                done, _ = await asyncio.wait(
+                    {step, aborted},
+                    timeout=STEP_TIMEOUT_S[self.state],
+                    return_when=asyncio.FIRST_COMPLETED,
+                )
+            finally:
+                aborted.cancel()
+            if step not in done:
+                step.cancel()
+                await asyncio.gather(step, return_exceptions=True)
+                if aborted in done:
+                    await self._make_safe()
+                    self._transition(State.ABORTED, "abort requested")
+                else:
+                    await self._fault(
+                        f"{self.state} timed out after {STEP_TIMEOUT_S[self.state]} s"
+                    )
+                break
+            try:
+                next_state = step.result()
+            except (DeviceError, SessionFault, TimeoutError) as error:
+                await self._fault(f"{type(error).__name__}: {error}")
+                break
+            except Exception as error:  # a bug: still make the robot safe and keep the data
+                log.exception("session step %s failed", self.state)
+                await self._fault(f"internal error in {self.state}: {error!r}")
+                break
+            self._transition(next_state)
+        if self.state == State.DONE:
+            await self._make_safe()
+        return self.summary()
+
+    def _transition(self, state: State, detail: str = "") -> None:
+        if state not in TRANSITIONS[self.state]:
+            raise RuntimeError(f"illegal transition {self.state} -> {state}")
+        previous, self.state = self.state, state
+        log.info("session %s: %s -> %s %s", self.session_id, previous, state, detail)
+        self.recorder.log_state(state, previous, detail)
+        self.publish(
+            "state",
+            {
+                "session": self.session_id,
+                "state": str(state),
+                "previous": str(previous),
+                "touch": self.touch_count,
+                "time": time.time(),
+                **({"detail": detail} if detail else {}),
+            },
+        )
+
+    # --- steps ----------------------------------------------------------------------------------
+
+    async def _capture(self) -> State:
+        devices = self.devices
+        start = time.perf_counter()
+        gripper_state = await devices.gripper.state()
+        if abs(gripper_state.width_m - self.config.motion.touch_width_m) > 1e-4:
+            await devices.gripper.move(
+                self.config.motion.touch_width_m,
+                speed_m_s=0.05,
+                force_limit_n=self.config.limits.max_force_n,
+                timeout_s=10.0,
+            )
+        self._reference = await devices.tactile.reference()
+        self._frame = await devices.camera.read()
+        self.times.motion_s += time.perf_counter() - start
+        self.recorder.log_camera(self._frame)
+        arm = await devices.arm.state()
+        pose_world_tcp = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
+        self.recorder.log_robot(
+            pose_world_tcp, pose_world_tcp @ self.tool.pose_tcp_pad(gripper_state.width_m)
+        )
+        return State.RECONSTRUCT
+
+    async def _reconstruct(self) -> State:
+        self.estimate = await self._compute(self.perception.reconstruct, self._frame, self.request)
+        self._record_shape()
+        return State.SELECT
+
+    async def _select(self) -> State:
+        assert self.estimate is not None
+        if self.touch_count >= self.request.max_touches:
+            return State.DONE
+        if self._unchanged_touches >= CONVERGED_AFTER_UNCHANGED_TOUCHES:
+            log.info("converged: %d touches changed no voxel", self._unchanged_touches)
+            return State.DONE
+        obstacles = Obstacles(self.estimate.occupied_points_world())
+        joints = (await self.devices.arm.state()).joints_rad
+
+        def allowed(target: TouchTarget) -> bool:
+            if any(
+                np.linalg.norm(target.target_world - rejected) < REJECTED_TARGET_RADIUS_M
+                for rejected in self._rejected
+            ):
+                return False
+            touch = self.planner.touch_geometry(target.target_world, target.direction_world)
+            try:
+                self.planner.plan_approach(touch, self._joints_at(touch, joints), obstacles)
+            except SafetyViolation:
+                return False
+            return True
+
+        self._target = await self._compute(
+            self.perception.select, self.estimate, self.request, self.outcomes, allowed
+        )
+        if self._target is None:
+            log.info("no reachable target left to touch")
+            return State.DONE
+        return State.APPROACH
+
+    async def _approach(self) -> State:
+        assert self._target is not None and self.estimate is not None
+        target = self._target
+        obstacles = Obstacles(self.estimate.occupied_points_world())
+        arm = await self.devices.arm.state()
+        pose_world_tcp = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
+        touch = self.planner.touch_geometry(target.target_world, target.direction_world)
+        try:
+            waypoints = self.planner.plan_transit(pose_world_tcp, arm.joints_rad, touch, obstacles)
+            joints = waypoints[-1].joints_rad if waypoints else arm.joints_rad
+            approach = self.planner.plan_approach(touch, joints, obstacles)
+        except SafetyViolation as violation:
+            log.warning("target %s refused: %s", np.round(target.target_world, 3), violation)
+            self._rejected.append(target.target_world)
+            return State.SELECT
+        self._touch = touch
+        start = time.perf_counter()
+        for waypoint in waypoints:
+            await self._move(waypoint)
+        self._early_contact = await self._move_until_contact(approach)
+        self.times.motion_s += time.perf_counter() - start
+        return State.TOUCH
+
+    async def _touch_step(self) -> State:
+        assert self._touch is not None and self._target is not None
+        assert self._reference is not None
+        devices, limits, motion = self.devices, self.config.limits, self.config.motion
+        start = time.perf_counter()
+        if self._early_contact:
+            gripper = await devices.gripper.state()
+            contact = True
+        else:
+            gripper = await devices.gripper.move(
+                self.config.gripper.stroke_m,
+                speed_m_s=motion.finger_speed_m_s,
+                force_limit_n=limits.contact_force_n,
+                timeout_s=STEP_TIMEOUT_S[State.TOUCH] / 2,
+            )
+            contact = gripper.blocked
+        check_force_or_fault(gripper.force_n, self.config)
+        tactile = await devices.tactile.read()
+        arm = await devices.arm.state()
+        pose_world_tcp = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
+        pose_world_pad = pose_world_tcp @ self.tool.pose_tcp_pad(gripper.width_m)
+        self.recorder.log_robot(pose_world_tcp, pose_world_pad)
+        # Back off: fingers to the approach width, then the arm out along the approach line.
+        await devices.gripper.move(
+            motion.touch_width_m,
+            speed_m_s=0.05,
+            force_limit_n=limits.max_force_n,
+            timeout_s=10.0,
+        )
+        retract = self.planner.plan_retract(self._touch, arm.joints_rad, Obstacles.none())
+        await self._move(retract)
+        self.times.motion_s += time.perf_counter() - start
+
+        measurement = TouchMeasurement(
+            target=self._target,
+            contact=contact,
+            tactile=tactile,
+            reference=self._reference,
+            pose_world_pad=pose_world_pad,
+            pad_start_world=self._touch.pad_start_world,
+            force_n=gripper.force_n,
+        )
+        outcome = await self._compute(self.perception.interpret, measurement)
+        self.outcomes.append(outcome)
+        self.touch_count += 1
+        self.recorder.set_touch(self.touch_count)
+        record = {
+            "session": self.session_id,
+            "touch": self.touch_count,
+            "target_world": self._target.target_world.tolist(),
+            "direction_world": self._target.direction_world.tolist(),
+            "contact": contact,
+            "contact_point_world": (
+                None
+                if outcome.contact_point_world is None
+                else outcome.contact_point_world.tolist()
+            ),
+            "contact_points": len(outcome.contact_points_world),
+            "force_n": gripper.force_n,
+            "pad_start_world": self._touch.pad_start_world.tolist(),
+            "pose_world_pad": pose_world_pad.tolist(),
+        }
+        self.recorder.log_tactile(tactile.image_bgr, outcome.height_map_mm)
+        self.recorder.log_touch(record, _rays(self._touch, outcome))
+        self.publish("touch", record)
+        return State.REFINE
+
+    async def _refine(self) -> State:
+        assert self.estimate is not None
+        previous = self.estimate.probabilities
+        self.estimate = await self._compute(
+            self.perception.refine, self.estimate, self.outcomes, self.request
+        )
+        flipped = int(np.count_nonzero((self.estimate.probabilities > 0.5) != (previous > 0.5)))
+        self._unchanged_touches = self._unchanged_touches + 1 if flipped == 0 else 0
+        self.recorder.log_metric("voxels_flipped", flipped)
+        self._record_shape()
+        self.times.per_touch_compute_s.append(self.times.compute_s)
+        self.times.per_touch_motion_s.append(self.times.motion_s)
+        if self.touch_count >= self.request.max_touches:
+            return State.DONE
+        return State.SELECT
+
+    # --- motion ---------------------------------------------------------------------------------
+
+    def _joints_at(self, touch: TouchGeometry, joints_near: np.ndarray) -> np.ndarray:
+        return check_reachable(touch.pose_world_tcp_start, self.pose_world_base, joints_near)
+
+    async def _move(self, waypoint: Waypoint) -> None:
+        pose_base_tcp = invert_transform(self.pose_world_base) @ waypoint.pose_world_tcp
+        await self.devices.arm.move_linear(
+            matrix_to_ur_pose(pose_base_tcp),
+            speed_m_s=waypoint.speed_m_s,
+            acceleration_m_s2=ACCELERATION_M_S2,
+            timeout_s=STEP_TIMEOUT_S[State.APPROACH],
+        )
+
+    async def _move_until_contact(self, waypoint: Waypoint) -> bool:
+        """The slow approach, watching the finger force: the surface may be nearer than the
+        estimate said. Returns True when the pad touched on the way (the arm then stops)."""
+        move = asyncio.create_task(self._move(waypoint), name=f"{self.session_id}:approach")
+        contact = False
+        while not move.done():
+            force = (await self.devices.gripper.state()).force_n
+            if force >= self.config.limits.contact_force_n:
+                contact = True
+                await self.devices.arm.stop()
+                break
+            await asyncio.wait({move}, timeout=0.02)
+        await move
+        return contact
+
+    async def _make_safe(self) -> None:
+        """Stop all motion and back the tool away from the object; errors here are logged,
+        never raised: this runs on faults, and must not hide the first error."""
+        devices = self.devices
+        for stop in (devices.arm.stop, devices.gripper.stop):
+            try:
+                await stop()
+            except DeviceError as error:
+                log.error("stop failed: %s", error)
+        try:
+            arm = await devices.arm.state()
+            if arm.protective_stopped:
+                await devices.arm.recover_protective_stop()
+                arm = await devices.arm.state()
+            pose_world_tcp = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
+            obstacles = (
+                Obstacles(self.estimate.occupied_points_world())
+                if self.estimate is not None
+                else Obstacles.none()
+            )
+            try:
+                waypoints = self.planner.plan_retreat(pose_world_tcp, arm.joints_rad, obstacles)
+            except SafetyViolation:
+                waypoints = self.planner.plan_retreat(
+                    pose_world_tcp, arm.joints_rad, Obstacles.none()
+                )
+            for waypoint in waypoints:
+                await self._move(waypoint)
+        except (DeviceError, SafetyViolation) as error:
+            log.error("could not retreat to a safe pose: %s", error)
+            self.error = (self.error or "") + f" (retreat failed: {error})"
+
+    async def _fault(self, message: str) -> None:
+        self.error = message
+        log.error("session %s fault: %s", self.session_id, message)
+        await self._make_safe()
+        self._transition(State.FAULT, message)
+
+    # --- helpers --------------------------------------------------------------------------------
+
+    async def _compute(self, function: Callable[..., Any], *args: Any) -> Any:
+        start = time.perf_counter()
+        try:
+            return await asyncio.to_thread(function, *args)
+        finally:
+            self.times.compute_s += time.perf_counter() - start
+
+    def _record_shape(self) -> None:
+        assert self.estimate is not None
+        if self.estimate.sketches:
+            self.recorder.log_sketches(self.estimate.sketches)
+        self.recorder.log_shape(self.estimate.probabilities, self.estimate.grid)
+        self.publish_shape(self.estimate)
+
+    def finish(self) -> None:
+        """Back to idle once the service has saved the session's artifacts."""
+        self._transition(State.IDLE)
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "session": self.session_id,
+            "state": str(self.state),
+            "touches": self.touch_count,
+            "contacts": sum(o.measurement.contact for o in self.outcomes),
+            "error": self.error,
+            "request": self.request.__dict__,
+            "compute_s": round(self.times.compute_s, 3),
+            "motion_s": round(self.times.motion_s, 3),
+        }
+
+
+def check_force_or_fault(force_n: float, config: Config) -> None:
+    """A force over the limit during a touch is a collision: fault."""
+    try:
+        check_force(force_n, config.limits)
+    except SafetyViolation as violation:
+        raise SessionFault(str(violation)) from None
+
+
+def _rays(touch: TouchGeometry, outcome: TouchOutcome) -> np.ndarray:
+    """Segments from the approach start to (up to 20 of) the contact points, or the full sweep
+    on a miss: what the touch says is empty space."""
+    points = outcome.contact_points_world
+    if len(points) == 0:
+        return np.array([[touch.pad_start_world, touch.pad_reach_world]])
+    sample = points[:: max(1, len(points) // 20)]
+    return np.stack([np.broadcast_to(touch.pad_start_world, sample.shape), sample], axis=1)
