@@ -1,0 +1,202 @@
+"""The service over a real Zenoh session on loopback: the API as a remote client sees it."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import json
+import socket
+import subprocess
+import sys
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+
+from controller.config import Config, MessagingConfig
+from controller.messaging import zenoh_config
+from controller.service import TouchshapeService, decode_shape
+from tests.fakes.perception import make_cylinder_perception
+
+WORKING = ["capture", "reconstruct", "select", "approach", "touch", "refine"]
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+class Client:
+    """A remote user's Zenoh session, collecting what the service publishes."""
+
+    def __init__(self, messaging: MessagingConfig) -> None:
+        self.session = zenoh.open(zenoh_config(messaging))
+        self.messages: dict[str, list[dict[str, Any]]] = {}
+        self._subscriber = self.session.declare_subscriber("touchshape/sim/*", self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        topic = str(sample.key_expr).rsplit("/", 1)[-1]
+        self.messages.setdefault(topic, []).append(json.loads(sample.payload.to_string()))
+
+    def query(self, name: str, body: str | bytes = b"") -> list[dict[str, Any]]:
+        replies = self.session.get(f"touchshape/sim/{name}", payload=body, timeout=3.0)
+        return [json.loads(reply.ok.payload.to_string()) for reply in replies if reply.ok]
+
+    async def aquery(self, name: str, body: str | bytes = b"") -> list[dict[str, Any]]:
+        return await asyncio.to_thread(self.query, name, body)
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+        self.session.close()
+
+
+async def wait_for(predicate, timeout_s: float = 60.0) -> None:
+    async with asyncio.timeout(timeout_s):
+        while not predicate():
+            await asyncio.sleep(0.02)
+
+
+@pytest.fixture
+async def served(tmp_path: Path) -> AsyncIterator[tuple[TouchshapeService, MessagingConfig]]:
+    port = free_port()
+    config = Config()
+    config = dataclasses.replace(
+        config,
+        sim=dataclasses.replace(config.sim, object="can"),
+        messaging=MessagingConfig(listen=(f"tcp/127.0.0.1:{port}",)),
+    )
+    service = TouchshapeService(config, make_cylinder_perception, logs_dir=tmp_path)
+    stop, ready = asyncio.Event(), asyncio.Event()
+    task = asyncio.create_task(service.serve(stop, ready))
+    await asyncio.wait_for(ready.wait(), 60)
+    yield service, MessagingConfig(listen=(), connect=(f"tcp/127.0.0.1:{port}",))
+    stop.set()
+    await task
+
+
+async def test_remote_session_end_to_end(served) -> None:
+    service, client_config = served
+    client = await asyncio.to_thread(Client, client_config)
+    try:
+        await asyncio.sleep(0.3)  # let the subscription reach the service
+        assert (await client.aquery("status"))[0]["state"] == "idle"
+        reply = (await client.aquery("explore", json.dumps({"max_touches": 2})))[0]
+        assert reply["accepted"] is True
+        await wait_for(lambda: "result" in client.messages)
+        states = [m for m in client.messages["state"] if m["session"] == reply["session"]]
+        names = [m["state"] for m in states]
+        assert names[: len(WORKING)] == WORKING
+        assert names[-2:] == ["done", "idle"]
+        assert all({"session", "state", "previous", "touch", "time"} <= set(m) for m in states)
+        assert len(client.messages["touch"]) == 2
+        shape = decode_shape(client.messages["shape"][-1])
+        assert shape.shape == (64, 64, 64) and shape.max() <= 1.0
+        result = client.messages["result"][0]
+        rrd = result["artifacts"]["recording"]
+        assert rrd.endswith(".rrd")
+        rerun = Path(sys.executable).with_name("rerun")
+        verified = subprocess.run([str(rerun), "rrd", "verify", rrd], capture_output=True)
+        assert verified.returncode == 0, verified.stderr
+        alive = await asyncio.to_thread(
+            lambda: list(client.session.liveliness().get("touchshape/sim/alive", timeout=2.0))
+        )
+        assert alive and alive[0].ok
+    finally:
+        client.close()
+
+
+@pytest.mark.parametrize(
+    ("body", "message"),
+    [
+        (b"{not json", "not valid JSON"),
+        (b"[1, 2]", "JSON object"),
+        (json.dumps({"max_touches": 0}), "1..100"),
+        (json.dumps({"max_touches": 101}), "1..100"),
+        (json.dumps({"max_touches": "3"}), "integer"),
+        (json.dumps({"policy": "greedy"}), "one of"),
+        (json.dumps({"touches": 3}), "unknown field"),
+    ],
+)
+async def test_bad_requests_get_error_replies(served, body, message) -> None:
+    service, client_config = served
+    client = await asyncio.to_thread(Client, client_config)
+    try:
+        reply = (await client.aquery("explore", body))[0]
+        assert reply["accepted"] is False and message in reply["error"]
+        assert not service.busy
+        assert (await client.aquery("status"))[0]["state"] == "idle"
+    finally:
+        client.close()
+
+
+async def test_busy_and_idle_abort(served) -> None:
+    service, client_config = served
+    client = await asyncio.to_thread(Client, client_config)
+    try:
+        assert (await client.aquery("abort"))[0]["aborted"] is False
+        first = (await client.aquery("explore", json.dumps({"max_touches": 3})))[0]
+        second = (await client.aquery("explore"))[0]
+        assert first["accepted"] and not second["accepted"] and "busy" in second["error"]
+        aborted = (await client.aquery("abort"))[0]
+        assert aborted == {"aborted": True, "session": first["session"]}
+        await wait_for(lambda: "result" in client.messages)
+        assert client.messages["result"][0]["state"] == "aborted"
+        status = (await client.aquery("status"))[0]
+        assert status["busy"] is False
+    finally:
+        client.close()
+
+
+async def test_peer_without_credentials_cannot_trigger(tmp_path: Path) -> None:
+    port = free_port()
+    (tmp_path / "credentials.txt").write_text("operator:s3cret\n")
+    (tmp_path / "password.txt").write_text("s3cret\n")
+    secured = MessagingConfig(
+        listen=(f"tcp/127.0.0.1:{port}",),
+        user="operator",
+        password_file=str(tmp_path / "password.txt"),
+        credentials_file=str(tmp_path / "credentials.txt"),
+    )
+    config = dataclasses.replace(Config(), messaging=secured)
+    service = TouchshapeService(config, make_cylinder_perception, logs_dir=tmp_path)
+    stop, ready = asyncio.Event(), asyncio.Event()
+    task = asyncio.create_task(service.serve(stop, ready))
+    await asyncio.wait_for(ready.wait(), 60)
+    try:
+        intruder = await asyncio.to_thread(
+            Client, MessagingConfig(listen=(), connect=(f"tcp/127.0.0.1:{port}",))
+        )
+        try:
+            assert await intruder.aquery("explore", json.dumps({"max_touches": 1})) == []
+        finally:
+            intruder.close()
+        assert not service.busy and service.session is None
+        (tmp_path / "wrong.txt").write_text("guess\n")
+        wrong = dataclasses.replace(
+            secured,
+            listen=(),
+            connect=(f"tcp/127.0.0.1:{port}",),
+            credentials_file="",
+            password_file=str(tmp_path / "wrong.txt"),
+        )
+        impostor = await asyncio.to_thread(Client, wrong)
+        try:
+            assert await impostor.aquery("status") == []
+        finally:
+            impostor.close()
+        operator = await asyncio.to_thread(
+            Client,
+            dataclasses.replace(
+                secured, listen=(), connect=(f"tcp/127.0.0.1:{port}",), credentials_file=""
+            ),
+        )
+        try:
+            assert (await operator.aquery("status"))[0]["state"] == "idle"
+        finally:
+            operator.close()
+    finally:
+        stop.set()
+        await task
