@@ -203,23 +203,34 @@ class MotionPlanner:
         return waypoints
 
     def plan_retreat(
-        self, pose_world_tcp: FloatArray, joints_rad: FloatArray, obstacles: Obstacles
+        self,
+        pose_world_tcp: FloatArray,
+        joints_rad: FloatArray,
+        obstacles: Obstacles,
+        *,
+        back_to_world_tcp: FloatArray | None = None,
     ) -> list[Waypoint]:
-        """Back off along the tool's -x (away from what the pad faces), then up to safe height:
-        where the arm goes after a fault or at the end of a session."""
-        back = pose_world_tcp.copy()
-        back[:3, 3] -= self.motion.approach_distance_m * pose_world_tcp[:3, 0]
-        joints = self.check_line(
-            pose_world_tcp, back, joints_rad, obstacles, exempt_parts=APPROACH_EXEMPT_PARTS
-        )
+        """Where the arm goes after a fault, an abort or at the end of a session: back to where
+        the interrupted motion started (the way it came, known to be clear) or, without one,
+        back along the tool's -x (away from what the pad faces); then up to the safe height."""
+        if back_to_world_tcp is None:
+            back_to_world_tcp = pose_world_tcp.copy()
+            back_to_world_tcp[:3, 3] -= self.motion.approach_distance_m * pose_world_tcp[:3, 0]
+        speed = self.limits.max_tcp_speed_m_s
+        waypoints = []
+        joints = joints_rad
+        back = back_to_world_tcp
+        if not np.allclose(back, pose_world_tcp):
+            # Retracing: the shape estimate may be wrong right here, the table is not.
+            joints = self.check_line(pose_world_tcp, back, joints, Obstacles.none())
+            waypoints.append(Waypoint(back, joints, speed, "retreat"))
         up = back.copy()
         up[2, 3] = max(
             back[2, 3], self._flange_height_clearing(back, self._estimate_top_m(obstacles))
         )
-        waypoints = [Waypoint(back, joints, self.limits.max_tcp_speed_m_s, "retreat")]
         if not np.allclose(up, back):
             joints = self.check_line(back, up, joints, obstacles)
-            waypoints.append(Waypoint(up, joints, self.limits.max_tcp_speed_m_s, "lift"))
+            waypoints.append(Waypoint(up, joints, speed, "lift"))
         return waypoints
 
     def check_line(

@@ -155,6 +155,8 @@ class ExplorationSession:
         self._early_contact = False
         self._rejected: list[np.ndarray] = []
         self._unchanged_touches = 0
+        self._move_start_world_tcp: np.ndarray | None = None
+        """Where the arm's current (or last, if it failed) motion started: a known-clear pose."""
 
     # --- the loop -------------------------------------------------------------------------------
 
@@ -395,6 +397,8 @@ class ExplorationSession:
         return check_reachable(touch.pose_world_tcp_start, self.pose_world_base, joints_near)
 
     async def _move(self, waypoint: Waypoint) -> None:
+        arm = await self.devices.arm.state()
+        self._move_start_world_tcp = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
         pose_base_tcp = invert_transform(self.pose_world_base) @ waypoint.pose_world_tcp
         await self.devices.arm.move_linear(
             matrix_to_ur_pose(pose_base_tcp),
@@ -419,31 +423,39 @@ class ExplorationSession:
         return contact
 
     async def _make_safe(self) -> None:
-        """Stop all motion and back the tool away from the object; errors here are logged,
-        never raised: this runs on faults, and must not hide the first error."""
+        """Stop all motion, pull the pad back, and take the tool back the way it came and up
+        above the object. Errors here are logged, never raised: this runs on faults, and must
+        not hide the first error."""
         devices = self.devices
         for stop in (devices.arm.stop, devices.gripper.stop):
             try:
                 await stop()
             except DeviceError as error:
                 log.error("stop failed: %s", error)
+        back_to = self._move_start_world_tcp
         try:
             arm = await devices.arm.state()
             if arm.protective_stopped:
                 await devices.arm.recover_protective_stop()
                 arm = await devices.arm.state()
+            gripper = await devices.gripper.state()
+            if gripper.width_m > self.config.motion.touch_width_m + 1e-4:
+                # Closing the fingers draws the pad back from the surface.
+                await devices.gripper.move(
+                    self.config.motion.touch_width_m,
+                    speed_m_s=0.05,
+                    force_limit_n=self.config.limits.max_force_n,
+                    timeout_s=10.0,
+                )
             pose_world_tcp = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
             obstacles = (
                 Obstacles(self.estimate.occupied_points_world())
                 if self.estimate is not None
                 else Obstacles.none()
             )
-            try:
-                waypoints = self.planner.plan_retreat(pose_world_tcp, arm.joints_rad, obstacles)
-            except SafetyViolation:
-                waypoints = self.planner.plan_retreat(
-                    pose_world_tcp, arm.joints_rad, Obstacles.none()
-                )
+            waypoints = self.planner.plan_retreat(
+                pose_world_tcp, arm.joints_rad, obstacles, back_to_world_tcp=back_to
+            )
             for waypoint in waypoints:
                 await self._move(waypoint)
         except (DeviceError, SafetyViolation) as error:
