@@ -33,7 +33,7 @@ def test_effective_config_round_trips_through_toml() -> None:
     assert config_from_dict(tomllib.loads(config_to_toml(config))) == config
 
 
-@pytest.mark.parametrize("name", ["sim.toml", "real_robot.toml"])
+@pytest.mark.parametrize("name", ["sim.toml", "real_robot.toml", "secured.toml"])
 def test_example_configs_load(name: str) -> None:
     config = load_config(REPO / "configs" / name)
     assert isinstance(config, Config)
