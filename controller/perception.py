@@ -28,6 +28,8 @@ class ShapeEstimate:
     latent: Any | None = None
     """The prior's latent code (a torch tensor) when a prior made this estimate."""
     sketches: dict[str, NDArray] = field(default_factory=dict)
+    vision_probabilities: NDArray[np.float32] | None = None
+    """The estimate from vision alone (what Direct Edit edits)."""
 
     def occupied_points_world(self) -> FloatArray:
         occupied = np.argwhere(self.probabilities > 0.5)

@@ -8,9 +8,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from controller.config import LimitsConfig
 from drivers.base import MotionRejectedError
@@ -33,6 +35,16 @@ class Obstacles:
     @classmethod
     def none(cls) -> Obstacles:
         return cls(np.zeros((0, 3)))
+
+    @cached_property
+    def _tree(self) -> cKDTree:
+        return cKDTree(self.occupied_points_world)
+
+    def near(self, centre_world: NDArray[np.float64], radius_m: float) -> NDArray[np.float64]:
+        """The obstacle points within ``radius_m`` of a point (a cheap pre-filter)."""
+        if len(self.occupied_points_world) == 0:
+            return self.occupied_points_world
+        return self.occupied_points_world[self._tree.query_ball_point(centre_world, radius_m)]
 
 
 def check_speed(speed_m_s: float, limit_m_s: float, *, what: str = "TCP speed") -> None:
@@ -92,7 +104,9 @@ def check_clearance(
                 f"clearance is {limits.table_clearance_m * 1e3:.0f} mm"
             )
         clearance = 0.0 if box.name in exempt_parts else limits.shape_clearance_m
-        if _box_near_points(pose_world_box, box, obstacles.occupied_points_world, clearance):
+        reach = float(np.linalg.norm(box.half_extents_m)) + clearance
+        nearby = obstacles.near(pose_world_box[:3, 3], reach)
+        if _box_near_points(pose_world_box, box, nearby, clearance):
             raise SafetyViolation(
                 f"{box.name} would come within {clearance * 1e3:.0f} mm of the shape estimate"
             )

@@ -204,7 +204,9 @@ class ExplorationSession:
                 break
             self._transition(next_state)
         if self.state == State.DONE:
-            await self._make_safe()
+            # The arm rests at the last approach start, clear of the object: going up above it
+            # is a courtesy, and a refused retreat there is no error.
+            await self._make_safe(report_failure=False)
         return self.summary()
 
     def _transition(self, state: State, detail: str = "") -> None:
@@ -292,10 +294,14 @@ class ExplorationSession:
         arm = await self.devices.arm.state()
         pose_world_tcp = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
         touch = self.planner.touch_geometry(target.target_world, target.direction_world)
-        try:
+
+        def plan() -> tuple[list[Waypoint], Waypoint]:
             waypoints = self.planner.plan_transit(pose_world_tcp, arm.joints_rad, touch, obstacles)
             joints = waypoints[-1].joints_rad if waypoints else arm.joints_rad
-            approach = self.planner.plan_approach(touch, joints, obstacles)
+            return waypoints, self.planner.plan_approach(touch, joints, obstacles)
+
+        try:
+            waypoints, approach = await self._compute(plan)
         except SafetyViolation as violation:
             log.warning("target %s refused: %s", np.round(target.target_world, 3), violation)
             self._rejected.append(target.target_world)
@@ -422,7 +428,7 @@ class ExplorationSession:
         await move
         return contact
 
-    async def _make_safe(self) -> None:
+    async def _make_safe(self, *, report_failure: bool = True) -> None:
         """Stop all motion, pull the pad back, and take the tool back the way it came and up
         above the object. Errors here are logged, never raised: this runs on faults, and must
         not hide the first error."""
@@ -459,6 +465,9 @@ class ExplorationSession:
             for waypoint in waypoints:
                 await self._move(waypoint)
         except (DeviceError, SafetyViolation) as error:
+            if not report_failure:
+                log.warning("stayed at the last approach start: %s", error)
+                return
             log.error("could not retreat to a safe pose: %s", error)
             self.error = (self.error or "") + f" (retreat failed: {error})"
 
