@@ -15,7 +15,9 @@ from controller.messaging import ExploreRequest
 log = logging.getLogger(__name__)
 
 
-def add_service_commands(groups: argparse._SubParsersAction) -> None:
+def add_service_commands(
+    groups: argparse._SubParsersAction, bench_commands: argparse._SubParsersAction
+) -> None:
     serve = groups.add_parser(
         "serve",
         help="run the service: explore on request over Zenoh (Ctrl-C stops it safely)",
@@ -39,6 +41,16 @@ def add_service_commands(groups: argparse._SubParsersAction) -> None:
     explore.add_argument("--update", choices=["prior", "direct"], default="prior")
     explore.add_argument("--input", choices=["rgb", "rgbd"], default="rgb")
     explore.set_defaults(handler=_explore)
+
+    bench = bench_commands.add_parser(
+        "service",
+        help="trigger-to-capture latency, compute vs motion time, memory over sessions",
+    )
+    bench.add_argument("--config", type=Path, default=None, help="TOML config file")
+    bench.add_argument("--sessions", type=int, default=20, help="sessions in the memory series")
+    bench.add_argument("--touches", type=int, default=3, help="touches per session")
+    bench.add_argument("--json", type=Path, default=None, help="also write the JSON here")
+    bench.set_defaults(handler=_bench_service)
 
 
 def _with_overrides(args: argparse.Namespace) -> Config:
@@ -113,6 +125,26 @@ def _explore(args: argparse.Namespace) -> int:
     summary = asyncio.run(run())
     _print_summary(summary)
     return 0 if summary["state"] == "done" else 1
+
+
+def _bench_service(args: argparse.Namespace) -> int:
+    import json
+    import tempfile
+
+    from controller.pipeline import make_perception
+    from controller.service_benchmark import benchmark_service
+
+    config = load_config(args.config)
+    with tempfile.TemporaryDirectory(prefix="touchshape-bench-") as logs:
+        result = benchmark_service(
+            config, make_perception, Path(logs), sessions=args.sessions, touches=args.touches
+        )
+    text = json.dumps(result, indent=2)
+    print(text)
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(text + "\n")
+    return 0
 
 
 def _print_summary(summary: dict) -> None:

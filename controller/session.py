@@ -98,12 +98,22 @@ class SessionFault(RuntimeError):
 
 @dataclass
 class SessionTimes:
-    """Wall-clock seconds spent computing (perception) and moving (device commands)."""
+    """Wall-clock seconds spent computing (perception, planning) and moving (device commands),
+    in total and per touch (from the end of one refinement to the end of the next)."""
 
     compute_s: float = 0.0
     motion_s: float = 0.0
     per_touch_compute_s: list[float] = field(default_factory=list)
     per_touch_motion_s: list[float] = field(default_factory=list)
+    _marks: list[tuple[float, float]] = field(default_factory=list)
+
+    def mark(self) -> None:
+        """Close a touch's accounting (and open the next one)."""
+        if self._marks:
+            compute, motion = self._marks[-1]
+            self.per_touch_compute_s.append(round(self.compute_s - compute, 3))
+            self.per_touch_motion_s.append(round(self.motion_s - motion, 3))
+        self._marks.append((self.compute_s, self.motion_s))
 
 
 Publish = Callable[[str, dict[str, Any]], None]
@@ -254,6 +264,7 @@ class ExplorationSession:
     async def _reconstruct(self) -> State:
         self.estimate = await self._compute(self.perception.reconstruct, self._frame, self.request)
         self._record_shape()
+        self.times.mark()
         return State.SELECT
 
     async def _select(self) -> State:
@@ -391,8 +402,7 @@ class ExplorationSession:
         self._unchanged_touches = self._unchanged_touches + 1 if flipped == 0 else 0
         self.recorder.log_metric("voxels_flipped", flipped)
         self._record_shape()
-        self.times.per_touch_compute_s.append(self.times.compute_s)
-        self.times.per_touch_motion_s.append(self.times.motion_s)
+        self.times.mark()
         if self.touch_count >= self.request.max_touches:
             return State.DONE
         return State.SELECT
@@ -507,6 +517,8 @@ class ExplorationSession:
             "request": self.request.__dict__,
             "compute_s": round(self.times.compute_s, 3),
             "motion_s": round(self.times.motion_s, 3),
+            "per_touch_compute_s": self.times.per_touch_compute_s,
+            "per_touch_motion_s": self.times.per_touch_motion_s,
         }
 
 

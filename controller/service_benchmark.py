@@ -1,0 +1,151 @@
+"""`touchshape bench service`: the service's own figures, measured through real Zenoh sessions.
+
+- trigger-to-capture latency: a remote client's explore query until it receives the session's
+  ``capture`` state publication (loopback);
+- compute vs motion per touch at real-time factor 1: wall time in perception (reconstruct,
+  select, interpret, refine, planning) against wall time the devices spent moving;
+- memory growth: resident set size after each of N sessions in one service process.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import json
+import socket
+import statistics
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from controller.config import Config, MessagingConfig
+from controller.messaging import ExploreRequest, zenoh_config
+from controller.service import PerceptionFactory, TouchshapeService
+
+
+def _rss_mb() -> float:
+    """Current resident set size of this process (Linux /proc), MB."""
+    with open("/proc/self/statm") as statm:
+        pages = int(statm.read().split()[1])
+    return pages * (4096 / 2**20)
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+async def _trigger_to_capture(
+    config: Config, factory: PerceptionFactory, logs_dir: Path, trials: int
+) -> list[float]:
+    port = _free_port()
+    served = dataclasses.replace(
+        config, messaging=MessagingConfig(listen=(f"tcp/127.0.0.1:{port}",))
+    )
+    service = TouchshapeService(served, factory, logs_dir=logs_dir)
+    stop, ready = asyncio.Event(), asyncio.Event()
+    task = asyncio.create_task(service.serve(stop, ready))
+    await asyncio.wait_for(ready.wait(), 120)
+    client = await asyncio.to_thread(
+        zenoh.open, zenoh_config(MessagingConfig(listen=(), connect=(f"tcp/127.0.0.1:{port}",)))
+    )
+    captured = threading.Event()
+    captured_at: list[float] = []
+
+    def on_state(sample: zenoh.Sample) -> None:
+        if json.loads(sample.payload.to_string())["state"] == "capture":
+            captured_at.append(time.perf_counter())
+            captured.set()
+
+    subscriber = client.declare_subscriber(f"touchshape/{config.robot.id}/state", on_state)
+    latencies = []
+    try:
+        await asyncio.sleep(0.5)
+        for _ in range(trials):
+            captured.clear()
+            sent = time.perf_counter()
+            await asyncio.to_thread(
+                lambda: list(
+                    client.get(
+                        f"touchshape/{config.robot.id}/explore",
+                        payload=json.dumps({"max_touches": 1}),
+                        timeout=5.0,
+                    )
+                )
+            )
+            await asyncio.to_thread(captured.wait, 10.0)
+            latencies.append((captured_at[-1] - sent) * 1e3)
+            await service.abort_session()
+    finally:
+        subscriber.undeclare()
+        await asyncio.to_thread(client.close)
+        stop.set()
+        await task
+    return latencies
+
+
+async def _sessions(
+    config: Config, factory: PerceptionFactory, logs_dir: Path, count: int, touches: int
+) -> list[dict[str, Any]]:
+    service = TouchshapeService(config, factory, logs_dir=logs_dir)
+    await service.start()
+    rows = []
+    try:
+        for _ in range(count):
+            service.start_session(ExploreRequest(max_touches=touches))
+            summary = await service.wait_session()
+            assert summary is not None
+            rows.append({**summary, "rss_mb": round(_rss_mb(), 1)})
+    finally:
+        await service.stop()
+    return rows
+
+
+def benchmark_service(
+    config: Config,
+    factory: PerceptionFactory,
+    logs_dir: Path,
+    *,
+    trials: int = 5,
+    sessions: int = 20,
+    touches: int = 3,
+) -> dict[str, Any]:
+    """All three figures; sessions run on the simulated bench (rtf 1 for the timing session,
+    rtf 0 for the memory series so it finishes in minutes)."""
+    latencies = asyncio.run(_trigger_to_capture(config, factory, logs_dir, trials))
+    real_time = dataclasses.replace(
+        config, sim=dataclasses.replace(config.sim, real_time_factor=1.0)
+    )
+    timed = asyncio.run(_sessions(real_time, factory, logs_dir, 1, touches))[0]
+    series = asyncio.run(_sessions(config, factory, logs_dir, sessions, touches))
+    rss = [row["rss_mb"] for row in series]
+    return {
+        "benchmark": "service",
+        "trigger_to_capture_ms": {
+            "median": round(statistics.median(latencies), 2),
+            "max": round(max(latencies), 2),
+            "trials": trials,
+        },
+        "real_time_session": {
+            "touches": timed["touches"],
+            "state": timed["state"],
+            "compute_s": timed["compute_s"],
+            "motion_s": timed["motion_s"],
+            "per_touch_compute_s": timed["per_touch_compute_s"],
+            "per_touch_motion_s": timed["per_touch_motion_s"],
+            "per_touch_compute_over_motion": round(
+                sum(timed["per_touch_compute_s"]) / max(sum(timed["per_touch_motion_s"]), 1e-9),
+                3,
+            ),
+        },
+        "memory": {
+            "sessions": sessions,
+            "touches_per_session": touches,
+            "rss_mb_after_each": rss,
+            "growth_mb_second_to_last": round(rss[-1] - rss[1], 1) if len(rss) > 1 else 0.0,
+        },
+    }
