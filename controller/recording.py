@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from drivers.base import RGBDFrame
 from models.geometry import VoxelGrid
+from models.metrics import voxel_surface_mesh
 
 # Rerun's SDK would otherwise ask about usage analytics on first use of the viewer tools.
 os.environ.setdefault("RERUN_ANALYTICS", "0")
@@ -205,6 +206,12 @@ class SessionRecorder:
             probabilities=probabilities.astype(np.float16),
             matrix_world_voxel=grid.matrix_world_voxel,
         )
+        return path
+
+    def save_mesh(self, probabilities: NDArray[np.floating], grid: VoxelGrid) -> Path:
+        """The shape's marching-cubes surface (world frame, metres) as PLY."""
+        path = self.artifacts_dir / "shape.ply"
+        voxel_surface_mesh(probabilities, grid).export(path)
         return path
 
     def save_summary(self, summary: dict[str, Any]) -> Path:

@@ -191,6 +191,7 @@ class TouchshapeService:
         if session.estimate is not None:
             estimate = session.estimate
             artifacts["voxels"] = str(recorder.save_voxels(estimate.probabilities, estimate.grid))
+            artifacts["mesh"] = str(recorder.save_mesh(estimate.probabilities, estimate.grid))
         return artifacts
 
     async def wait_session(self) -> dict[str, Any] | None:

@@ -34,6 +34,7 @@ from drivers.base import DeviceError, TactileFrame
 from drivers.factory import Devices
 from drivers.tool import ToolModel
 from models.geometry import invert_transform, matrix_to_ur_pose, ur_pose_to_matrix
+from models.metrics import mesh_metrics
 
 log = logging.getLogger(__name__)
 
@@ -158,6 +159,8 @@ class ExplorationSession:
         self.outcomes: list[TouchOutcome] = []
         self.times = SessionTimes()
         self.error: str | None = None
+        self.metrics: dict[str, list[float]] = {}
+        """Ground-truth scores after reconstruct and each refine (simulation only)."""
         self._frame = None
         self._reference: TactileFrame | None = None
         self._target: TouchTarget | None = None
@@ -263,7 +266,7 @@ class ExplorationSession:
 
     async def _reconstruct(self) -> State:
         self.estimate = await self._compute(self.perception.reconstruct, self._frame, self.request)
-        self._record_shape()
+        await self._record_shape()
         self.times.mark()
         return State.SELECT
 
@@ -401,7 +404,7 @@ class ExplorationSession:
         flipped = int(np.count_nonzero((self.estimate.probabilities > 0.5) != (previous > 0.5)))
         self._unchanged_touches = self._unchanged_touches + 1 if flipped == 0 else 0
         self.recorder.log_metric("voxels_flipped", flipped)
-        self._record_shape()
+        await self._record_shape()
         self.times.mark()
         if self.touch_count >= self.request.max_touches:
             return State.DONE
@@ -496,12 +499,25 @@ class ExplorationSession:
         finally:
             self.times.compute_s += time.perf_counter() - start
 
-    def _record_shape(self) -> None:
+    async def _record_shape(self) -> None:
         assert self.estimate is not None
         if self.estimate.sketches:
             self.recorder.log_sketches(self.estimate.sketches)
         self.recorder.log_shape(self.estimate.probabilities, self.estimate.grid)
         self.publish_shape(self.estimate)
+        world = self.devices.world
+        if world is not None:
+            # Only a simulation knows the true shape: score every estimate against it.
+            scores = await asyncio.to_thread(
+                mesh_metrics,
+                self.estimate.probabilities,
+                self.estimate.grid,
+                world.object_mesh_world,
+            )
+            for name in ("chamfer_mm", "fscore_2mm", "fscore_5mm"):
+                value = float(getattr(scores, name))
+                self.metrics.setdefault(name, []).append(round(value, 3))
+                self.recorder.log_metric(name, value)
 
     def finish(self) -> None:
         """Back to idle once the service has saved the session's artifacts."""
@@ -519,6 +535,7 @@ class ExplorationSession:
             "motion_s": round(self.times.motion_s, 3),
             "per_touch_compute_s": self.times.per_touch_compute_s,
             "per_touch_motion_s": self.times.per_touch_motion_s,
+            "metrics": self.metrics,
         }
 
 

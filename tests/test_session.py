@@ -62,6 +62,9 @@ async def test_a_session_touches_and_records(tmp_path: Path) -> None:
     assert [t["touch"] for t in touches] == [1, 2, 3]
     rerun_verify(summary["artifacts"]["recording"])
     assert Path(summary["artifacts"]["summary"]).exists()
+    assert Path(summary["artifacts"]["mesh"]).stat().st_size > 0
+    # Scored against the simulation's ground truth after reconstruct and each of 3 touches.
+    assert len(summary["metrics"]["chamfer_mm"]) == 4
     voxels = np.load(summary["artifacts"]["voxels"])
     assert voxels["probabilities"].shape == (64, 64, 64)
 
