@@ -76,12 +76,13 @@ class SimWSG50(Gripper):
 
     # --- commands -------------------------------------------------------------------------------
 
-    async def home(self, *, timeout_s: float = 10.0) -> None:
-        """Reference by opening fully, as the WSG 50 homes toward its outer end stop."""
+    async def home(self, *, timeout_s: float = 10.0, opening: bool = True) -> None:
+        """Reference by opening fully, as the WSG 50 homes toward its outer end stop by default;
+        ``opening=False`` homes toward the closed end (a setting on the real gripper)."""
         self._require_connected()
         self._referenced = True
         state = await self.move(
-            self.config.stroke_m,
+            self.config.stroke_m if opening else 0.0,
             speed_m_s=0.1,
             force_limit_n=self.config.max_force_n,
             timeout_s=timeout_s,
@@ -161,6 +162,9 @@ class SimWSG50(Gripper):
             raise DeviceNotConnectedError("simulated gripper is not connected")
 
     def _gel_force_n(self, width_m: float) -> float:
+        # Polled often while the arm approaches: a few hundred rays say "nothing near" cheaply.
+        if self._pad_gap_m(width_m) > 0.0:
+            return 0.0
         pose_world_pad = self.world.pose_world_tcp() @ self.world.tool.pose_tcp_pad(width_m)
         indentation = self.gel.indentation_mm(self.world.scene_mesh_world, pose_world_pad)
         return self.gel.contact_force_n(indentation)
@@ -213,13 +217,15 @@ class SimWSG50(Gripper):
         (0 if already touching, inf if nothing is in front)."""
         pose_world_pad = self.world.pose_world_tcp() @ self.world.tool.pose_tcp_pad(width_m)
         spec = self.gel.spec
+        backing_m = spec.gel_thickness_mm * 1e-3
         xs = np.linspace(-spec.width_mm / 2, spec.width_mm / 2, PRECHECK_GRID[0]) * 1e-3
         ys = np.linspace(-spec.height_mm / 2, spec.height_mm / 2, PRECHECK_GRID[1]) * 1e-3
-        grid = np.stack(np.meshgrid(xs, ys, [0.0], indexing="ij"), axis=-1).reshape(-1, 3)
+        # Rays start on the rigid backing, so a surface already pressing into the gel is seen.
+        grid = np.stack(np.meshgrid(xs, ys, [-backing_m], indexing="ij"), axis=-1).reshape(-1, 3)
         origins = transform_points(pose_world_pad, grid)
         normal = pose_world_pad[:3, 2]
         mesh = self.world.scene_mesh_world
-        _, ray_ids, locations = mesh.ray.intersects_id(
+        triangles, ray_ids, locations = mesh.ray.intersects_id(
             origins,
             np.broadcast_to(normal, origins.shape),
             multiple_hits=False,
@@ -227,7 +233,9 @@ class SimWSG50(Gripper):
         )
         if len(ray_ids) == 0:
             return math.inf
-        distances: NDArray[np.float64] = (locations - origins[ray_ids]) @ normal
+        if np.any(mesh.face_normals[triangles] @ normal > 0):
+            return 0.0  # a back face first: the backing itself is inside the object
+        distances: NDArray[np.float64] = (locations - origins[ray_ids]) @ normal - backing_m
         # Coarse rays can pass between fine features: keep one sample spacing of margin.
         margin = max(xs[1] - xs[0], ys[1] - ys[0])
         return max(0.0, float(distances.min()) - margin)
