@@ -17,7 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
 from controller.config import LimitsConfig, MotionConfig
-from controller.safety import Obstacles, SafetyViolation, check_pose
+from controller.safety import Obstacles, SafetyViolation, check_pose, check_speed
 from drivers.tool import ToolModel
 from models.geometry import (
     frame_from_z_axis,
@@ -31,8 +31,10 @@ FloatArray = NDArray[np.float64]
 
 APPROACH_EXEMPT_PARTS = ("gelsight_housing", "finger_sensor_side")
 """Parts allowed to come close to the estimate on the approach: they lead into the contact."""
-MAX_JOINT_STEP_RAD = 0.6
-"""A larger joint change between two checked poses 1 cm apart means a singular path."""
+TOOL_REACH_M = 0.17
+"""Flange to fingertip: a radian of tool rotation sweeps the tip about this far."""
+MIN_LINE_SPEED_M_S = 0.002
+"""A line whose joint rates would force the TCP slower than this passes a singularity."""
 
 
 def pad_pose_facing(
@@ -124,30 +126,28 @@ class MotionPlanner:
         self, touch: TouchGeometry, joints_rad: FloatArray, obstacles: Obstacles
     ) -> Waypoint:
         """The slow straight approach from the start to the stand-off."""
-        joints = self.check_line(
+        return self.line(
             touch.pose_world_tcp_start,
             touch.pose_world_tcp_standoff,
             joints_rad,
             obstacles,
+            speed_m_s=self.limits.approach_speed_m_s,
+            label="approach",
             exempt_parts=APPROACH_EXEMPT_PARTS,
-        )
-        return Waypoint(
-            touch.pose_world_tcp_standoff, joints, self.limits.approach_speed_m_s, "approach"
         )
 
     def plan_retract(
         self, touch: TouchGeometry, joints_rad: FloatArray, obstacles: Obstacles
     ) -> Waypoint:
         """Back out along the approach line from the stand-off to the approach start."""
-        joints = self.check_line(
+        return self.line(
             touch.pose_world_tcp_standoff,
             touch.pose_world_tcp_start,
             joints_rad,
             obstacles,
+            speed_m_s=self.limits.max_tcp_speed_m_s,
+            label="retract",
             exempt_parts=APPROACH_EXEMPT_PARTS,
-        )
-        return Waypoint(
-            touch.pose_world_tcp_start, joints, self.limits.max_tcp_speed_m_s, "retract"
         )
 
     def plan_transit(
@@ -166,8 +166,11 @@ class MotionPlanner:
         speed = self.limits.max_tcp_speed_m_s
         if angle <= np.radians(self.motion.direct_move_max_angle_deg):
             try:
-                joints = self.check_line(pose_world_tcp, goal, joints_rad, obstacles)
-                return [Waypoint(goal, joints, speed, "direct")]
+                return [
+                    self.line(
+                        pose_world_tcp, goal, joints_rad, obstacles, speed_m_s=speed, label="direct"
+                    )
+                ]
             except SafetyViolation:
                 pass  # blocked by the shape or out of reach on the way: go around above
         return self.plan_detour(pose_world_tcp, joints_rad, goal, obstacles)
@@ -197,8 +200,9 @@ class MotionPlanner:
         for pose, label in ((lift, "lift"), (above_goal, "across"), (goal_world_tcp, "descend")):
             if np.allclose(pose, start):
                 continue
-            joints = self.check_line(start, pose, joints, obstacles)
-            waypoints.append(Waypoint(pose, joints, speed, label))
+            waypoint = self.line(start, pose, joints, obstacles, speed_m_s=speed, label=label)
+            waypoints.append(waypoint)
+            joints = waypoint.joints_rad
             start = pose
         return waypoints
 
@@ -222,35 +226,45 @@ class MotionPlanner:
         back = back_to_world_tcp
         if not np.allclose(back, pose_world_tcp):
             # Retracing: the shape estimate may be wrong right here, the table is not.
-            joints = self.check_line(pose_world_tcp, back, joints, Obstacles.none())
-            waypoints.append(Waypoint(back, joints, speed, "retreat"))
+            waypoint = self.line(
+                pose_world_tcp, back, joints, Obstacles.none(), speed_m_s=speed, label="retreat"
+            )
+            waypoints.append(waypoint)
+            joints = waypoint.joints_rad
         up = back.copy()
         up[2, 3] = max(
             back[2, 3], self._flange_height_clearing(back, self._estimate_top_m(obstacles))
         )
         if not np.allclose(up, back):
-            joints = self.check_line(back, up, joints, obstacles)
-            waypoints.append(Waypoint(up, joints, speed, "lift"))
+            waypoints.append(self.line(back, up, joints, obstacles, speed_m_s=speed, label="lift"))
         return waypoints
 
-    def check_line(
+    def line(
         self,
         start_world_tcp: FloatArray,
         end_world_tcp: FloatArray,
         joints_rad: FloatArray,
         obstacles: Obstacles,
         *,
+        speed_m_s: float,
+        label: str,
         exempt_parts: tuple[str, ...] = (),
-    ) -> FloatArray:
-        """Check poses along a straight TCP line (slerped orientation, as moveL moves) and
-        return the joints at its end; SafetyViolation on the first pose that fails."""
+    ) -> Waypoint:
+        """A checked straight TCP line (slerped orientation, as moveL moves): every pose
+        ``path_check_step_m`` apart passes the safety checks, and the speed is lowered where the
+        joints would otherwise turn faster than ``max_joint_speed_rad_s``. SafetyViolation on
+        the first failing pose, or when the line passes so near a singularity that the TCP
+        would have to crawl."""
+        check_speed(speed_m_s, self.limits.max_tcp_speed_m_s)
         distance = np.linalg.norm(end_world_tcp[:3, 3] - start_world_tcp[:3, 3])
         angle = rotation_angle_between(start_world_tcp[:3, :3], end_world_tcp[:3, :3])
-        # A radian of rotation sweeps the fingertip ~0.17 m: weigh angle like that distance.
-        steps = max(1, int(np.ceil(max(distance, 0.17 * angle) / self.motion.path_check_step_m)))
+        length = max(distance, TOOL_REACH_M * angle)
+        steps = max(1, int(np.ceil(length / self.motion.path_check_step_m)))
         rotations = Rotation.from_matrix(np.stack([start_world_tcp[:3, :3], end_world_tcp[:3, :3]]))
         slerp = Slerp([0.0, 1.0], rotations)
         joints = np.asarray(joints_rad, dtype=float)
+        joint_rad_per_m = 0.0
+        pose = start_world_tcp
         for fraction in np.linspace(0.0, 1.0, steps + 1)[1:]:
             pose = make_transform(
                 slerp(fraction).as_matrix(),
@@ -266,12 +280,18 @@ class MotionPlanner:
                 joints_near_rad=joints,
                 exempt_parts=exempt_parts,
             )
-            if np.max(np.abs(next_joints - joints)) > MAX_JOINT_STEP_RAD:
-                raise SafetyViolation(
-                    f"path through {np.round(pose[:3, 3], 3).tolist()} m is near a singularity"
-                )
+            if length > 0:
+                step_rad = float(np.max(np.abs(next_joints - joints)))
+                joint_rad_per_m = max(joint_rad_per_m, step_rad / (length / steps))
             joints = next_joints
-        return joints
+        if joint_rad_per_m > 0:
+            speed_m_s = min(speed_m_s, self.limits.max_joint_speed_rad_s / joint_rad_per_m)
+        if speed_m_s < MIN_LINE_SPEED_M_S:
+            raise SafetyViolation(
+                f"line to {np.round(end_world_tcp[:3, 3], 3).tolist()} m passes near a "
+                "singularity (joints would turn too fast)"
+            )
+        return Waypoint(end_world_tcp, joints, speed_m_s, label)
 
     def _estimate_top_m(self, obstacles: Obstacles) -> float:
         points = obstacles.occupied_points_world
