@@ -23,9 +23,6 @@ from drivers.base import RGBDFrame
 from models.geometry import VoxelGrid
 from models.metrics import voxel_surface_mesh
 
-# Rerun's SDK would otherwise ask about usage analytics on first use of the viewer tools.
-os.environ.setdefault("RERUN_ANALYTICS", "0")
-
 
 def _confidence_colours(probabilities: NDArray[np.floating]) -> NDArray[np.uint8]:
     """Red (unsure, v near 0.5) to green (sure) for occupied voxels."""
