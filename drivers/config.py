@@ -37,10 +37,31 @@ class ArmConfig:
     control_frequency_hz: float = 125.0
     """RTDE rate: 125 Hz on a CB3 UR5, 500 Hz on e-Series."""
     connect_timeout_s: float = 5.0
+    """ur_rtde: one connection attempt (dashboard, RTDE, control-script upload)."""
+    connect_attempts: int = 3
+    """ur_rtde: attempts of connect(), with exponential backoff between them."""
+    max_tool_speed_m_s: float = 1.0
+    """ur_rtde: the fastest moveL the driver sends (MotionRejectedError above)."""
+    max_tool_acceleration_m_s2: float = 5.0
+    max_joint_acceleration_rad_s2: float = 40.0
+    watchdog_timeout_s: float = 1.0
+    """ur_rtde: no fresh RTDE state for this long means the link is lost (then it reconnects)."""
 
     def __post_init__(self) -> None:
         if self.max_joint_speed_rad_s <= 0 or self.control_frequency_hz <= 0:
             raise ValueError("max_joint_speed_rad_s and control_frequency_hz must be positive")
+        limits = (
+            self.max_tool_speed_m_s,
+            self.max_tool_acceleration_m_s2,
+            self.max_joint_acceleration_rad_s2,
+            self.connect_timeout_s,
+            self.watchdog_timeout_s,
+        )
+        if min(limits) <= 0 or self.connect_attempts < 1:
+            raise ValueError(
+                "arm speed, acceleration and timeout limits must be positive,"
+                " connect_attempts at least 1"
+            )
 
 
 @dataclass(frozen=True)
@@ -61,12 +82,27 @@ class GripperConfig:
     finger_size_m: Vec3 = (0.008, 0.020, 0.100)
     """One finger box (thickness along x, width along y, length along z from the body's top)."""
     timeout_s: float = 3.0
+    """WSG 50: longest wait for the reply to a command (a motion's end has its own timeout)."""
+    connect_timeout_s: float = 3.0
+    """WSG 50: opening the serial port or the TCP connection."""
+    state_update_period_ms: int = 20
+    """WSG 50: period of the automatic width, force and system-state updates."""
+    max_state_age_s: float = 0.25
+    """WSG 50: an older state means the gripper went silent (state() raises a timeout)."""
 
     def __post_init__(self) -> None:
         if not 0 < self.stroke_m <= 0.2:
             raise ValueError("stroke_m must be in (0, 0.2]")
         if min(self.body_size_m) <= 0 or min(self.finger_size_m) <= 0:
             raise ValueError("body_size_m and finger_size_m must be positive")
+        if min(self.timeout_s, self.connect_timeout_s, self.max_state_age_s) <= 0:
+            raise ValueError("timeout_s, connect_timeout_s and max_state_age_s must be positive")
+        if not 5 <= self.state_update_period_ms <= 1000:
+            raise ValueError("state_update_period_ms must be in [5, 1000]")
+        if self.max_state_age_s * 1e3 < 2 * self.state_update_period_ms:
+            raise ValueError("max_state_age_s must cover at least two state update periods")
+        if self.baudrate <= 0 or not 0 < self.tcp_port < 65536:
+            raise ValueError("baudrate must be positive and tcp_port in 1..65535")
 
 
 @dataclass(frozen=True)
@@ -75,7 +111,7 @@ class SensorConfig:
 
     type: Literal["sim", "opencv"] = "sim"
     device: str = "0"
-    """OpenCV camera index or a /dev/v4l/by-id/... path."""
+    """OpenCV camera index, a /dev/v4l/by-id/... path, or a video file (replayed in a loop)."""
     pad_width_mm: float = 19.0
     """Along the finger (tool z), imaged along the 640 px columns."""
     pad_height_mm: float = 14.0
@@ -93,10 +129,32 @@ class SensorConfig:
     youngs_modulus_mpa: float = 0.3
     image_noise_sigma: float = 1.5
     """Gaussian image noise of the simulated sensor, 8-bit units."""
+    calibration_file: str = ""
+    """GelSight calibration from `touchshape gelsight calibrate`; empty = built at start-up from
+    the real ball presses shipped with taxim (the sensor the simulation's optics come from)."""
+    crop_px: tuple[int, int, int, int] = (0, 0, 0, 0)
+    """Camera: (x, y, width, height) of the gel area in the captured image; zeros = all of it."""
+    reference_frame_count: int = 10
+    """Camera: the no-contact reference is the mean of this many consecutive frames."""
+    max_frame_age_s: float = 0.5
+    """Camera: a newest frame older than this means the camera stalled (read raises)."""
+    open_timeout_s: float = 5.0
+    """Camera: opening the device and getting its first frame."""
 
     def __post_init__(self) -> None:
         if self.pad_width_mm <= 0 or self.pad_height_mm <= 0:
             raise ValueError("pad size must be positive")
+        if min(self.image_width_px, self.image_height_px) <= 0 or self.frame_rate_hz <= 0:
+            raise ValueError("image size and frame_rate_hz must be positive")
+        x, y, width, height = self.crop_px
+        if min(x, y, width, height) < 0 or (width == 0) != (height == 0):
+            raise ValueError(
+                "crop_px is (x, y, width, height) >= 0; width and height both 0 or not"
+            )
+        if self.reference_frame_count < 1:
+            raise ValueError("reference_frame_count must be >= 1")
+        if self.max_frame_age_s <= 0 or self.open_timeout_s <= 0:
+            raise ValueError("max_frame_age_s and open_timeout_s must be positive")
         if not 0 < self.max_indentation_mm < self.gel_thickness_mm:
             raise ValueError("max_indentation_mm must be in (0, gel_thickness_mm)")
 
@@ -107,6 +165,15 @@ class CameraConfig:
 
     type: Literal["sim", "kinect_v2", "realsense"] = "sim"
     serial: str = ""
+    """Real camera's serial number; empty = the first one found."""
+    kinect_pipeline: Literal["cpu", "opengl", "opencl"] = "opengl"
+    """Kinect v2: libfreenect2's depth decoder (opengl needs a display or EGL; cpu is slow)."""
+    playback_file: str = ""
+    """RealSense: play back a recording (.bag or .db3) instead of opening a camera."""
+    max_frame_age_s: float = 0.5
+    """Real camera: a newest frame older than this means the camera stalled (read raises)."""
+    open_timeout_s: float = 10.0
+    """Real camera: opening the device and getting its first frame."""
     height_m: float = 0.4572
     tilt_deg: float = 30.0
     horizontal_distance_m: float = 0.62
@@ -127,6 +194,8 @@ class CameraConfig:
             raise ValueError("colour_scale must be in [0.05, 1]")
         if self.height_m <= 0 or self.horizontal_distance_m <= 0:
             raise ValueError("height_m and horizontal_distance_m must be positive")
+        if self.max_frame_age_s <= 0 or self.open_timeout_s <= 0:
+            raise ValueError("max_frame_age_s and open_timeout_s must be positive")
 
     def pose_world_camera(self) -> NDArray[np.float64]:
         """Camera pose (OpenCV axes) in the world, from height, tilt, distance and yaw."""

@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from drivers.base import Arm, DeviceConnectionError, Gripper, RGBDCamera, TactileSensor
+from drivers.base import Arm, Gripper, RGBDCamera, TactileSensor
 from drivers.config import ArmConfig, CameraConfig, GripperConfig, SensorConfig, SimConfig
 from drivers.sim.world import SimWorld
+
+if TYPE_CHECKING:
+    from models.tactile_sim import GelSightSimulator
 
 
 @dataclass
@@ -52,26 +56,65 @@ def make_devices(
 ) -> Devices:
     """Devices for a config; nothing is connected yet."""
     # Imported here so a real-robot install never loads the simulation's heavy pieces.
-    from drivers.sim.arm import SimUR5
-    from drivers.sim.camera import SimKinect
-    from drivers.sim.gelsight import SimGelSight, gel_pad_spec
-    from drivers.sim.gripper import SimWSG50
+    from drivers.sim.gelsight import gel_pad_spec
     from models.tactile_sim import GelSightSimulator
 
-    kinds = {"arm": arm.type, "gripper": gripper.type, "sensor": sensor.type, "camera": camera.type}
-    real = {name: kind for name, kind in kinds.items() if kind != "sim"}
-    if real:
-        # TODO(#7): real UR5 (ur-rtde), WSG 50, GelSight camera and Kinect v2 backends.
-        raise DeviceConnectionError(
-            "real device backends are not available yet (issue #7): "
-            + ", ".join(f"{name}.type = {kind!r}" for name, kind in real.items())
-        )
     world = SimWorld.from_config(sim, arm, gripper, sensor)
     gel = GelSightSimulator(gel_pad_spec(sensor))
     return Devices(
-        camera=SimKinect(world, camera, rng),
-        tactile=SimGelSight(world, gel, rng),
-        arm=SimUR5(world, arm),
-        gripper=SimWSG50(world, gripper, gel),
+        camera=_make_camera(camera, world, rng),
+        tactile=_make_tactile(sensor, world, gel, rng),
+        arm=_make_arm(arm, world),
+        gripper=_make_gripper(gripper, world, gel),
         world=world,
     )
+
+
+def _make_arm(config: ArmConfig, world: SimWorld) -> Arm:
+    if config.type == "ur_rtde":
+        from drivers.ur_rtde_arm import URRtdeArm
+
+        return URRtdeArm(config)
+    from drivers.sim.arm import SimUR5
+
+    return SimUR5(world, config)
+
+
+# Real backends import their vendor SDK when built, so a missing optional extra only matters
+# for the device that needs it.
+
+
+def _make_gripper(config: GripperConfig, world: SimWorld, gel: GelSightSimulator) -> Gripper:
+    if config.type in ("wsg50_serial", "wsg50_tcp"):
+        from drivers.wsg50_gripper import WSG50Gripper
+
+        return WSG50Gripper(config)
+    from drivers.sim.gripper import SimWSG50
+
+    return SimWSG50(world, config, gel)
+
+
+def _make_tactile(
+    config: SensorConfig, world: SimWorld, gel: GelSightSimulator, rng: np.random.Generator
+) -> TactileSensor:
+    if config.type == "opencv":
+        from drivers.gelsight_camera import GelSightCamera
+
+        return GelSightCamera(config)
+    from drivers.sim.gelsight import SimGelSight
+
+    return SimGelSight(world, gel, rng)
+
+
+def _make_camera(config: CameraConfig, world: SimWorld, rng: np.random.Generator) -> RGBDCamera:
+    if config.type == "kinect_v2":
+        from drivers.kinect_v2 import KinectV2Camera
+
+        return KinectV2Camera(config)
+    if config.type == "realsense":
+        from drivers.realsense import RealSenseCamera
+
+        return RealSenseCamera(config)
+    from drivers.sim.camera import SimKinect
+
+    return SimKinect(world, config, rng)

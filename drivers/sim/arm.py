@@ -215,6 +215,15 @@ class SimUR5(Arm):
             timeout_s,
         )
 
+    async def follow(
+        self, joints_at: Callable[[float], FloatArray], duration_s: float, *, timeout_s: float
+    ) -> None:
+        """Follow a joint trajectory: ``joints_at(t)`` gives the joints (rad) t seconds after
+        the start, for ``duration_s``. Same checks, stop and cancellation as a move (the UR
+        controller emulator runs speedL through this)."""
+        self._check_can_move()
+        await self._run(joints_at, duration_s, timeout_s)
+
     # --- stepping -------------------------------------------------------------------------------
 
     async def _run(
