@@ -4,14 +4,22 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
+import dataclasses
 import json
 import logging
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from controller.calibrate_commands import add_calibrate_commands
+from controller.check_commands import add_check_commands
 from controller.config import ConfigError, config_to_toml, load_config
+from controller.explore_commands import add_explore_benchmark_command
+from controller.gelsight_commands import add_gelsight_commands
+from controller.hardware_commands import add_hardware_commands
 from controller.prior_commands import add_prior_commands
+from controller.service_commands import add_service_commands
 
 log = logging.getLogger("touchshape")
 
@@ -20,6 +28,13 @@ EXAMPLES = """examples:
   touchshape sim snapshot --object path/to/model.obj --up-axis y --out logs/snapshot
   touchshape config show --config configs/sim.toml
   touchshape bench sim --json logs/bench_sim.json
+  touchshape sim ur-controller --host 127.0.0.2
+  touchshape check arm --host 127.0.0.2
+  touchshape sim wsg --pty            (then: touchshape check gripper --serial /dev/pts/N)
+  touchshape check tactile --device 0
+  touchshape gelsight calibrate --frames even --out logs/gelsight/calib.npz
+  touchshape gelsight reconstruct --calib logs/gelsight/calib.npz --frames 1,3 --out rec
+  touchshape bench gelsight --json
 """
 
 
@@ -58,6 +73,17 @@ def build_parser() -> argparse.ArgumentParser:
     snapshot.add_argument("--seed", type=int, default=None, help="object and noise seed")
     snapshot.add_argument("--out", type=Path, required=True, help="output folder")
     snapshot.set_defaults(handler=_sim_snapshot)
+    ur_controller = sim_commands.add_parser(
+        "ur-controller",
+        help="emulate a UR5 controller (RTDE, dashboard, script port) moving the sim arm",
+        epilog="example: touchshape sim ur-controller --host 127.0.0.2  (then: check arm)",
+    )
+    _config_argument(ur_controller)
+    ur_controller.add_argument("--host", default="127.0.0.2", help="loopback address to bind")
+    ur_controller.add_argument(
+        "--real-time-factor", type=float, default=1.0, help="1 real time, 2 half speed"
+    )
+    ur_controller.set_defaults(handler=_sim_ur_controller)
 
     bench = groups.add_parser("bench", help="performance benchmarks (JSON)")
     bench_commands = bench.add_subparsers(dest="command", required=True)
@@ -69,6 +95,11 @@ def build_parser() -> argparse.ArgumentParser:
     bench_sim.add_argument("--json", type=Path, default=None, help="also write the JSON here")
     bench_sim.set_defaults(handler=_bench_sim)
     add_prior_commands(groups, bench_commands)
+    add_hardware_commands(add_check_commands(groups), sim_commands)
+    add_gelsight_commands(groups, bench_commands)
+    add_service_commands(groups, bench_commands)
+    add_calibrate_commands(groups)
+    add_explore_benchmark_command(bench_commands)
     return parser
 
 
@@ -86,6 +117,18 @@ def _sim_snapshot(args: argparse.Namespace) -> int:
     )
     for path in save_images(images, args.out):
         print(path)
+    return 0
+
+
+def _sim_ur_controller(args: argparse.Namespace) -> int:
+    from drivers.sim.ur_controller import serve_forever
+    from drivers.sim.world import SimWorld
+
+    config = load_config(args.config)
+    sim = dataclasses.replace(config.sim, real_time_factor=args.real_time_factor)
+    world = SimWorld.from_config(sim, config.robot.arm, config.gripper, config.sensor)
+    with contextlib.suppress(KeyboardInterrupt):
+        asyncio.run(serve_forever(world, config.robot.arm, host=args.host))
     return 0
 
 

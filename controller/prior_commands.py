@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
@@ -102,6 +103,77 @@ def add_prior_commands(
             )
         parser.set_defaults(handler=train_network, stage=stage)
 
+    calibrate = train_commands.add_parser(
+        "calibrate",
+        help="Platt-calibrate a shape net's voxel probabilities on predicted sketches",
+        epilog="example: touchshape train calibrate --data logs/data/general "
+        "--sketch-weights logs/train/general_sketch/sketch.pt "
+        "--shape-weights logs/train/general_shape/shape.pt "
+        "--out logs/train/general_shape/shape_calibrated.pt",
+    )
+    calibrate.add_argument("--data", type=Path, required=True, help="dataset folder")
+    calibrate.add_argument("--sketch-weights", type=Path, required=True)
+    calibrate.add_argument("--shape-weights", type=Path, required=True)
+    calibrate.add_argument("--out", type=Path, required=True, help="calibrated shape weights")
+    calibrate.add_argument("--preset", default="cpu", choices=("cpu", "paper"))
+    calibrate.add_argument("--samples", type=int, default=256, help="views to fit / to report")
+    calibrate.add_argument("--seed", type=int, default=0, help="train/val split seed")
+    calibrate.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    calibrate.set_defaults(handler=calibrate_shape)
+
+    evaluate = groups.add_parser("eval", help="evaluate models on the simulated bench")
+    eval_commands = evaluate.add_subparsers(dest="command", required=True)
+    prior = eval_commands.add_parser(
+        "prior",
+        help="render objects on the bench, predict voxels, report IoU / Chamfer (JSON)",
+        epilog="examples:\n  touchshape eval prior --views 4 --json logs/eval_prior_rgb.json\n"
+        "  touchshape eval prior --input rgbd --views 4 --json logs/eval_prior_rgbd.json\n"
+        "  touchshape eval prior --objects my.obj other.stl --views 8 --json logs/mine.json\n"
+        "  touchshape eval prior --prior box --categories box --json logs/eval_box.json",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    prior.add_argument("--config", type=Path, default=None, help="TOML config (camera, prior)")
+    prior.add_argument(
+        "--objects",
+        nargs="+",
+        type=Path,
+        default=None,
+        help="mesh files (default: held-out procedural shapes)",
+    )
+    prior.add_argument("--up-axis", default="z", help="up axis of the mesh files (y: ShapeNet)")
+    prior.add_argument(
+        "--fit-size",
+        type=float,
+        default=None,
+        help="scale mesh files to this largest extent, metres",
+    )
+    prior.add_argument(
+        "--categories",
+        nargs="+",
+        default=list(CATEGORIES),
+        choices=ALL_CATEGORIES,
+        metavar="NAME",
+        help="held-out procedural categories (default: the 14)",
+    )
+    prior.add_argument("--shapes-per-category", type=int, default=5)
+    prior.add_argument("--input", choices=("rgb", "rgbd"), default="rgb")
+    prior.add_argument("--views", type=int, default=4, help="random object yaws per object")
+    prior.add_argument("--prior", default=None, help="prior name (default: the config's)")
+    prior.add_argument("--preset", default=None, help="network preset (default: the config's)")
+    prior.add_argument("--weights-dir", default=None, help="default: the config's / shipped")
+    prior.add_argument("--seed", type=int, default=0, help="view seed")
+    prior.add_argument("--json", type=Path, default=None, help="also write the JSON here")
+    prior.set_defaults(handler=eval_prior)
+
+    bench = bench_commands.add_parser(
+        "prior",
+        help="time image -> voxels for both presets, training throughput, model sizes",
+        epilog="example: touchshape bench prior --json logs/bench_prior.json",
+    )
+    bench.add_argument("--repeats", type=int, default=10, help="timed calls per measurement")
+    bench.add_argument("--json", type=Path, default=None, help="also write the JSON here")
+    bench.set_defaults(handler=bench_prior)
+
 
 def data_build(args: argparse.Namespace) -> int:
     from models.dataset import BuildSpec, ViewRecipe, build_dataset
@@ -155,4 +227,102 @@ def train_network(args: argparse.Namespace) -> int:
         threads=args.threads,
     )
     print(json.dumps(train(config), indent=2))
+    return 0
+
+
+def calibrate_shape(args: argparse.Namespace) -> int:
+    import torch
+
+    from models.calibration import fit_platt, fold_platt, iou_offset, predicted_logits
+    from models.dataset import SketchVoxelDataset, split_by_shape
+    from models.metrics import voxel_iou
+    from models.networks import ShapeNet, SketchNet, get_preset
+    from models.training import load_weights, save_weights
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    preset = get_preset(args.preset)
+    sketch, shape = SketchNet(preset), ShapeNet(preset)
+    load_weights(sketch, args.sketch_weights)
+    load_weights(shape, args.shape_weights)
+    dataset = SketchVoxelDataset(args.data)
+    train_idx, val_idx = split_by_shape(dataset, 0.05, args.seed)
+
+    def spread(indices: list[int]) -> list[int]:
+        step = max(1, len(indices) // args.samples)
+        return indices[::step][: args.samples]
+
+    logits, truth = predicted_logits(sketch, shape, dataset, spread(train_idx))
+    scale, platt_offset = fit_platt(logits, truth)
+    offset = iou_offset(logits, truth, scale, platt_offset)
+    del logits, truth
+    val_logits, val_truth = predicted_logits(sketch, shape, dataset, spread(val_idx))
+    result = {
+        "scale": scale,
+        "platt_offset": platt_offset,
+        "offset": offset,
+        "val_views": len(val_truth),
+        "val_iou_before": voxel_iou(torch.sigmoid(val_logits), val_truth),
+        "val_iou_after": voxel_iou(torch.sigmoid(scale * val_logits + offset), val_truth),
+    }
+    fold_platt(shape, scale, offset)
+    save_weights(shape, "shape", args.preset, args.out)
+    _write_json(result, None)
+    return 0
+
+
+def _bench_camera(config):
+    from models.evaluation import BenchCamera
+    from models.render import CameraIntrinsics
+
+    camera = config.cameras.rgbd
+    return BenchCamera(
+        intrinsics=CameraIntrinsics.kinect_v2_colour(camera.colour_scale),
+        pose_world_camera=camera.pose_world_camera(),
+        object_albedo_rgb=config.sim.object_albedo_rgb,
+        table_size_m=config.sim.table_size_m,
+    )
+
+
+def eval_prior(args: argparse.Namespace) -> int:
+    from models.evaluation import EvalObject, evaluate_prior, held_out_objects
+    from models.prior import ShapePrior
+    from models.shapes import load_mesh_file
+
+    config = load_config(args.config)
+    models = dataclasses.replace(
+        config.models,
+        prior=args.prior or config.models.prior,
+        preset=args.preset or config.models.preset,
+        weights_dir=args.weights_dir or config.models.weights_dir,
+    )
+    prior = ShapePrior.from_config(models)
+    if args.objects:
+        objects = [
+            EvalObject(
+                path.stem,
+                "file",
+                load_mesh_file(path, up_axis=args.up_axis, fit_max_extent_m=args.fit_size),
+            )
+            for path in args.objects
+        ]
+    else:
+        objects = held_out_objects(args.categories, args.shapes_per_category)
+    result = evaluate_prior(
+        prior,
+        objects,
+        _bench_camera(config),
+        views=args.views,
+        input_mode=args.input,
+        seed=args.seed,
+    )
+    _write_json(result, args.json)
+    return 0
+
+
+def bench_prior(args: argparse.Namespace) -> int:
+    from models.prior_benchmark import benchmark_prior
+
+    config = load_config(None)
+    _write_json(benchmark_prior(_bench_camera(config), repeats=args.repeats), args.json)
     return 0

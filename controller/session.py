@@ -91,6 +91,8 @@ shape has stopped changing."""
 REJECTED_TARGET_RADIUS_M = 0.01
 """Targets within this distance of one the planner refused are not proposed again."""
 ACCELERATION_M_S2 = 0.5
+APPROACH_STEP_M = 0.001
+"""Arm travel between force readings on an approach: less than the gel's 1.5 mm give."""
 
 
 class SessionFault(RuntimeError):
@@ -428,18 +430,23 @@ class ExplorationSession:
 
     async def _move_until_contact(self, waypoint: Waypoint) -> bool:
         """The slow approach, watching the finger force: the surface may be nearer than the
-        estimate said. Returns True when the pad touched on the way (the arm then stops)."""
-        move = asyncio.create_task(self._move(waypoint), name=f"{self.session_id}:approach")
-        contact = False
-        while not move.done():
-            force = (await self.devices.gripper.state()).force_n
-            if force >= self.config.limits.contact_force_n:
-                contact = True
-                await self.devices.arm.stop()
-                break
-            await asyncio.wait({move}, timeout=0.02)
-        await move
-        return contact
+        estimate said. The line is driven in ``APPROACH_STEP_M`` moves with a force reading
+        after each, so the arm never travels further than the gel can give between checks.
+        Returns True when the pad touched on the way (the arm then stays there)."""
+        arm = await self.devices.arm.state()
+        start = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
+        end = waypoint.pose_world_tcp
+        distance = float(np.linalg.norm(end[:3, 3] - start[:3, 3]))
+        steps = max(1, int(np.ceil(distance / APPROACH_STEP_M)))
+        for index in range(1, steps + 1):
+            pose = end.copy() if index == steps else start.copy()
+            if index < steps:
+                pose[:3, :3] = end[:3, :3]
+                pose[:3, 3] = start[:3, 3] + index / steps * (end[:3, 3] - start[:3, 3])
+            await self._move(Waypoint(pose, waypoint.joints_rad, waypoint.speed_m_s, "approach"))
+            if (await self.devices.gripper.state()).force_n >= self.config.limits.contact_force_n:
+                return True
+        return False
 
     async def _make_safe(self, *, report_failure: bool = True) -> None:
         """Stop all motion, pull the pad back, and take the tool back the way it came and up

@@ -78,7 +78,7 @@ async def served(tmp_path: Path) -> AsyncIterator[tuple[TouchshapeService, Messa
 
 
 async def test_remote_session_end_to_end(served) -> None:
-    service, client_config = served
+    _, client_config = served
     client = await asyncio.to_thread(Client, client_config)
     try:
         await asyncio.sleep(0.3)  # let the subscription reach the service
@@ -98,7 +98,9 @@ async def test_remote_session_end_to_end(served) -> None:
         rrd = result["artifacts"]["recording"]
         assert rrd.endswith(".rrd")
         rerun = Path(sys.executable).with_name("rerun")
-        verified = subprocess.run([str(rerun), "rrd", "verify", rrd], capture_output=True)
+        verified = await asyncio.to_thread(
+            subprocess.run, [str(rerun), "rrd", "verify", rrd], capture_output=True
+        )
         assert verified.returncode == 0, verified.stderr
         alive = await asyncio.to_thread(
             lambda: list(client.session.liveliness().get("touchshape/sim/alive", timeout=2.0))
@@ -133,7 +135,7 @@ async def test_bad_requests_get_error_replies(served, body, message) -> None:
 
 
 async def test_busy_and_idle_abort(served) -> None:
-    service, client_config = served
+    _, client_config = served
     client = await asyncio.to_thread(Client, client_config)
     try:
         assert (await client.aquery("abort"))[0]["aborted"] is False

@@ -167,6 +167,8 @@ class SimWSG50(Gripper):
             return 0.0
         pose_world_pad = self.world.pose_world_tcp() @ self.world.tool.pose_tcp_pad(width_m)
         indentation = self.gel.indentation_mm(self.world.scene_mesh_world, pose_world_pad)
+        if self.gel.bottomed_out(indentation):
+            return self.config.max_force_n  # pressed onto the rigid backing: the finger stalls
         return self.gel.contact_force_n(indentation)
 
     def _block_reason(self, width_m: float, force_limit_n: float, *, gel: bool) -> str | None:

@@ -1,0 +1,283 @@
+"""The exploration benchmark: simulated touches, the oracle, mesh files, the JSON and the CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from controller.cli import build_parser
+from controller.config import Config
+from controller.explore_benchmark import (
+    METHODS,
+    ExploreSettings,
+    SimTouchBench,
+    TouchTrial,
+    choose_oracle_trial,
+    file_objects,
+    plot_curves,
+    run_explore_benchmark,
+    summarise,
+)
+from controller.perception import TouchTarget
+from controller.pipeline import LearnedPerception, load_calibration
+from models.evaluation import EvalObject
+from models.geometry import make_transform
+from models.prior import ShapePrior
+
+BOX_HALF_M = 0.04
+
+
+@pytest.fixture(scope="module")
+def config() -> Config:
+    return Config()
+
+
+@pytest.fixture(scope="module")
+def calibration(config: Config):
+    return load_calibration(config)
+
+
+@pytest.fixture(scope="module")
+def box_bench(config: Config):
+    box = trimesh.creation.box(
+        (2 * BOX_HALF_M,) * 3, transform=make_transform(None, (0, 0, BOX_HALF_M))
+    )
+    bench = SimTouchBench(config, box, seed=0)
+    yield bench
+    bench.close()
+
+
+def perception_for(config: Config, calibration) -> LearnedPerception:
+    return LearnedPerception(
+        config,
+        camera_position_world=config.cameras.rgbd.pose_world_camera()[:3, 3],
+        calibration=calibration,
+    )
+
+
+def test_sweep_toward_a_box_face_makes_contact(box_bench, config) -> None:
+    target = TouchTarget(np.array([BOX_HALF_M, 0.0, 0.04]), np.array([-1.0, 0.0, 0.0]))
+    measurement = box_bench.touch(target, noise_seed=(0,))
+    assert measurement is not None and measurement.contact
+    assert measurement.force_n == pytest.approx(config.limits.contact_force_n, rel=0.05)
+    # The pad started on the approach line before the face and stopped on it (gel pressed in).
+    assert measurement.pad_start_world[0] > BOX_HALF_M + 0.02
+    assert measurement.pose_world_pad[0, 3] == pytest.approx(BOX_HALF_M, abs=2e-3)
+
+
+def test_contact_on_a_box_edge_gives_contact_points(box_bench, config, calibration) -> None:
+    # A flat face filling the pad leaves no gradient for the GelSight to see; an edge does.
+    edge = np.array([BOX_HALF_M, BOX_HALF_M, 0.04])
+    target = TouchTarget(edge, np.array([-1.0, -1.0, 0.0]) / np.sqrt(2))
+    measurement = box_bench.touch(target, noise_seed=(0,))
+    assert measurement is not None and measurement.contact
+    outcome = perception_for(config, calibration).interpret(measurement)
+    points = outcome.contact_points_world
+    assert len(points) > 0
+    assert np.abs(points[:, :2] - edge[:2]).max() < 2e-3  # on the vertical edge
+    assert len(outcome.constraints.occupied) > 0 and len(outcome.constraints.empty) > 0
+
+
+def test_sweep_through_free_space_is_a_miss_over_the_full_stroke(box_bench, config) -> None:
+    target = TouchTarget(np.array([0.15, 0.15, 0.05]), np.array([-1.0, 0.0, 0.0]))
+    measurement = box_bench.touch(target, noise_seed=(1,))
+    assert measurement is not None and not measurement.contact
+    travel = np.linalg.norm(measurement.pose_world_pad[:3, 3] - measurement.pad_start_world)
+    assert travel == pytest.approx(config.gripper.stroke_m / 2 - 0.001, abs=1e-4)
+    assert measurement.force_n == 0.0
+
+
+def test_a_target_without_a_clear_start_is_refused(box_bench) -> None:
+    # A target deep in the box: every start up to 45 mm out along the line is inside the box.
+    inside = TouchTarget(np.array([-0.02, 0.0, 0.04]), np.array([-1.0, 0.0, 0.0]))
+    assert not box_bench.allowed(inside)
+    assert box_bench.touch(inside, noise_seed=(2,)) is None
+
+
+def test_the_oracle_picks_the_candidate_with_the_lowest_error() -> None:
+    targets = [TouchTarget(np.array([x, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0])) for x in range(4)]
+    errors = {0: 12.0, 1: None, 2: 7.5, 3: 9.0}  # None: the touch could not be made
+    calls = []
+
+    def trial(target: TouchTarget) -> TouchTrial | None:
+        index = int(target.target_world[0])
+        calls.append(index)
+        if errors[index] is None:
+            return None
+        return TouchTrial(None, None, {"chamfer_mm": errors[index]}, 0.0)  # type: ignore[arg-type]
+
+    chosen = choose_oracle_trial(targets, trial)
+    assert chosen is not None and chosen.metrics["chamfer_mm"] == 7.5
+    assert sorted(calls) == [0, 1, 2, 3]
+    assert choose_oracle_trial([], trial) is None
+
+
+def write_open_mesh_in_millimetres(path: Path) -> None:
+    """A 300 mm tall, y-up open tube (no caps: not watertight), as a user's OBJ might be."""
+    tube = trimesh.creation.cylinder(radius=40.0, height=300.0, sections=24)
+    tube.apply_transform(make_transform(np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]]), (5, 7, 9)))
+    keep = np.abs(tube.face_normals[:, 1]) < 0.9  # drop the caps
+    trimesh.Trimesh(tube.vertices, tube.faces[keep]).export(path)
+
+
+def test_any_mesh_file_becomes_an_upright_object_in_the_grid(tmp_path: Path) -> None:
+    path = tmp_path / "tube.obj"
+    write_open_mesh_in_millimetres(path)
+    (obj,) = file_objects([path], up_axis="y")
+    low, high = obj.mesh.bounds
+    assert obj.name == "tube" and not obj.mesh.is_watertight
+    assert low[2] == pytest.approx(0.0, abs=1e-9) and high[2] == pytest.approx(0.25)
+    assert np.allclose((low[:2] + high[:2]) / 2, 0.0, atol=1e-9)
+    (fitted,) = file_objects([path], up_axis="y", fit_size_m=0.12)
+    assert max(fitted.mesh.extents) == pytest.approx(0.12)
+
+
+def check_curves(result: dict, touches: int) -> None:
+    for key in ("chamfer_mm", "fscore_5mm", "fscore_2mm", "iou"):
+        assert len(result[key]) == touches + 1
+    assert len(result["select_s"]) == len(result["refine_s"]) == result["touches_made"]
+
+
+def test_benchmark_json_on_a_small_object(config, calibration, tmp_path: Path) -> None:
+    box = trimesh.creation.box((0.06, 0.05, 0.08), transform=make_transform(None, (0, 0, 0.04)))
+    settings = ExploreSettings(
+        touches=2, methods=("active-direct", "random-prior"), random_runs=2, timing_resolutions=()
+    )
+    result = run_explore_benchmark(
+        config,
+        [EvalObject("small_box", "file", box)],
+        settings,
+        prior=ShapePrior.untrained("cpu"),
+        calibration=calibration,
+        progress=False,
+    )
+    json.dumps(result, allow_nan=False)  # strict JSON: no NaN or inf
+    (obj,) = result["objects"]
+    assert obj["name"] == "small_box" and set(obj["methods"]) == set(settings.methods)
+    active, random = obj["methods"]["active-direct"], obj["methods"]["random-prior"]
+    check_curves(active, 2)
+    assert active["chamfer_mm"][0] == random["chamfer_mm"][0]  # one vision estimate
+    assert len(random["runs"]) == 2
+    for run in random["runs"]:
+        check_curves(run, 2)
+    summary = result["summary"]
+    assert summary["objects"] == 1 and summary["touches"] == 2
+    assert len(summary["methods"]["active-direct"]["chamfer_mm"]) == 3
+    assert "chamfer_change_pct" in summary["methods"]["random-prior"]
+    assert summary["bar"] == {}  # the bar needs active-prior
+    assert result["timing"] == []
+    plot_curves(result, tmp_path / "explore.png")
+    assert (tmp_path / "explore.png").stat().st_size > 1000
+
+
+def method_result(chamfer: list[float]) -> dict:
+    touches = len(chamfer) - 1
+    return {
+        "chamfer_mm": chamfer,
+        **{key: [0.5] * (touches + 1) for key in ("fscore_5mm", "fscore_2mm", "iou")},
+        "select_s": [0.01] * touches,
+        "refine_s": [0.2] * touches,
+        "contact": [True, False, True][:touches],
+        "imprint": [True, False, False][:touches],
+        "touch_loss": [[2.0, 1.0]] * touches,
+        "flipped": [4] * touches,
+        "target": [[0.0, 0.0, 0.05, -1.0, 0.0, 0.0]] * touches,
+        "touches_made": touches,
+    }
+
+
+def test_summary_averages_curves_and_checks_the_bar() -> None:
+    objects = [
+        {
+            "methods": {
+                "active-prior": method_result([10.0, 9.0, 8.0, 6.0]),
+                "random-prior": method_result([10.0, 9.5, 9.0, 8.0]),
+                "active-direct": method_result([10.0, 9.0, 8.0, 7.0]),
+            }
+        },
+        {
+            "methods": {
+                "active-prior": method_result([20.0, 16.0, 12.0, 10.0]),
+                "random-prior": method_result([20.0, 15.0, 13.0, 12.0]),
+                "active-direct": method_result([20.0, 16.0, 12.0, 9.0]),
+            }
+        },
+    ]
+    summary = summarise(objects, ["active-prior", "random-prior", "active-direct"], 3)
+    active = summary["methods"]["active-prior"]
+    assert active["chamfer_mm"] == [15.0, 12.5, 10.0, 8.0]
+    assert active["chamfer_change_pct"] == pytest.approx(-45.0)  # mean of -40 % and -50 %
+    assert active["touches"]["imprint"] == 2 and active["touches"]["force_only"] == 2
+    assert active["touches"]["miss"] == 2 and active["touches"]["flipped_voxels_mean"] == 4
+    assert active["touches"]["touch_loss_after_over_before_median"] == 0.5
+    assert active["touches"]["repeated_targets"] == 4  # the same target thrice per object
+    assert summary["bar"] == {
+        "active_prior_chamfer_change_pct": pytest.approx(-45.0),
+        "active_prior_lowers_chamfer_30pct": True,
+        "active_beats_random_from_3": True,  # 8.0 < 10.0 at 3 touches
+        "active_beats_direct_at_end": False,  # 8.0 = 8.0
+    }
+
+
+def test_settings_reject_unknown_methods() -> None:
+    with pytest.raises(ValueError, match="unknown method"):
+        ExploreSettings(methods=("active-prior", "greedy"))
+    assert set(METHODS) == set(ExploreSettings().methods)
+
+
+def test_cli_parses_the_issue_command() -> None:
+    args = build_parser().parse_args(
+        [
+            *("bench", "explore", "--objects", "a.obj", "b.stl", "--up-axis", "y"),
+            *("--touches", "10", "--methods", ",".join(METHODS), "--json", "out.json"),
+            *("--plot", "p.png", "--random-runs", "10", "--oracle-candidates", "4"),
+            *("--prior", "box", "--input", "rgbd"),
+        ]
+    )
+    assert args.handler.__name__ == "bench_explore"
+    assert args.objects == [Path("a.obj"), Path("b.stl")] and args.up_axis == "y"
+    assert args.methods.split(",") == list(METHODS)
+    assert (args.random_runs, args.oracle_candidates, args.prior, args.input) == (
+        10,
+        4,
+        "box",
+        "rgbd",
+    )
+
+
+@pytest.mark.slow
+def test_a_mesh_file_runs_through_the_benchmark_deterministically(
+    config, calibration, tmp_path: Path
+) -> None:
+    path = tmp_path / "tube.obj"
+    write_open_mesh_in_millimetres(path)
+    objects = file_objects([path], up_axis="y", fit_size_m=0.15)
+    settings = ExploreSettings(
+        touches=2,
+        methods=("active-direct", "oracle-prior"),
+        oracle_candidates=1,
+        timing_resolutions=(),
+    )
+
+    def run() -> dict:
+        return run_explore_benchmark(
+            config,
+            objects,
+            settings,
+            prior=ShapePrior.untrained("cpu"),
+            calibration=calibration,
+            progress=False,
+        )
+
+    first, second = run(), run()
+    for method in settings.methods:
+        check_curves(first["objects"][0]["methods"][method], 2)
+        for key in ("chamfer_mm", "iou", "contact"):
+            assert (
+                first["objects"][0]["methods"][method][key]
+                == second["objects"][0]["methods"][method][key]
+            )

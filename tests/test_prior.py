@@ -1,0 +1,157 @@
+"""The virtual camera and the ShapePrior: crops, frames, named weights, RGB-D, decode."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from drivers.config import CameraConfig
+from models.dataset import registered_grid
+from models.geometry import VoxelGrid, axes_facing_camera
+from models.prior import DEFAULT_WEIGHTS_DIR, PriorNotFoundError, ShapePrior, available_priors
+from models.render import CameraIntrinsics, Scene, render
+from models.shapes import make_shape
+from models.training import save_weights
+from models.virtual_camera import crop_image, grid_crop
+
+FULL = CameraIntrinsics.kinect_v2_colour(0.5)
+
+
+@pytest.fixture(scope="module")
+def bench_frame():
+    rng = np.random.default_rng(0)
+    scene = Scene.bench(make_shape("mug", rng), (0.75, 0.35, 0.25))
+    pose = CameraConfig().pose_world_camera()
+    return scene, pose, render(scene, FULL, pose)
+
+
+def test_crop_of_full_frame_matches_render_at_virtual_camera(bench_frame) -> None:
+    """Training renders through the virtual camera; inference crops the full frame: same pixels."""
+    scene, pose, full = bench_frame
+    grid = VoxelGrid(64, 0.26, axes_world=axes_facing_camera(pose[:3, 3]))
+    crop = grid_crop(FULL, pose, grid, 128)
+    direct = render(scene, crop.intrinsics, pose)
+    cropped = crop_image(full.silhouette.astype(np.uint8) * 255, crop) > 127
+    both, either = cropped & direct.silhouette, cropped | direct.silhouette
+    assert both.sum() / either.sum() > 0.97
+    depth = crop_image(full.depth_m, crop, nearest=True)
+    assert np.median(np.abs(depth[both] - direct.depth_m[both])) < 2e-3
+    colour = crop_image(full.colour_rgb, crop)
+    assert colour.dtype == np.uint8 and colour.shape == (128, 128, 3)
+    assert np.abs(colour.astype(float) - direct.colour_rgb).mean() < 3.0
+    # Nearness round trip, and no return stays no return.
+    assert np.allclose(crop.depth_m(crop.nearness(direct.depth_m)), direct.depth_m, atol=1e-5)
+
+
+def test_training_grid_is_the_controller_grid(bench_frame) -> None:
+    from controller.config import VoxelGridConfig
+    from models.dataset import ViewRecipe
+
+    _, pose, _ = bench_frame
+    assert registered_grid(ViewRecipe(), pose) == VoxelGridConfig().grid(tuple(pose[:3, 3]))
+
+
+def test_untrained_prior_predicts_in_the_grid_frame(bench_frame) -> None:
+    _, pose, full = bench_frame
+    prior = ShapePrior.untrained("cpu")
+    grid = VoxelGrid(64, 0.26, axes_world=axes_facing_camera(pose[:3, 3]))
+    rgb = prior.predict(full.colour_rgb, FULL, pose, grid)
+    rgbd = prior.predict(full.colour_rgb, FULL, pose, grid, depth_m=full.depth_m)
+    for prediction in (rgb, rgbd):
+        assert prediction.probabilities.shape == (64, 64, 64)
+        assert prediction.latent.shape == (200,)
+        assert prediction.silhouette.shape == (128, 128)
+        assert prediction.normals_camera.shape == (128, 128, 3)
+    latent = rgb.latent.clone().requires_grad_(True)
+    decoded = prior.decode(latent)
+    assert decoded.shape == (64, 64, 64)
+    decoded.sum().backward()
+    assert latent.grad is not None
+    with pytest.raises(ValueError, match="64\\^3"):
+        prior.predict(full.colour_rgb, FULL, pose, VoxelGrid(32, 0.26))
+
+
+def test_named_priors_load_and_unknown_names_list_the_available(tmp_path: Path) -> None:
+    torch.manual_seed(0)
+    reference = ShapePrior.untrained("cpu")
+    save_weights(reference.sketch_net, "sketch", "cpu", tmp_path / "s.pt")
+    save_weights(reference.shape_net, "shape", "cpu", tmp_path / "b.pt")
+    entry = {
+        "preset": "cpu",
+        "sketch_weights": "s.pt",
+        "shape_weights": "b.pt",
+        "grid_extent_m": 0.26,
+    }
+    (tmp_path / "priors.json").write_text(json.dumps({"priors": [{"name": "box", **entry}]}))
+    prior = ShapePrior.load("box", weights_dir=tmp_path)
+    latent = torch.randn(2, 200)
+    with torch.no_grad():
+        assert torch.allclose(prior.decode(latent), reference.decode(latent), atol=2e-2)
+    with pytest.raises(PriorNotFoundError, match=r"available: box \(cpu\)"):
+        ShapePrior.load("mugs", weights_dir=tmp_path)
+    with pytest.raises(PriorNotFoundError, match="preset 'paper'"):
+        ShapePrior.load("box", preset="paper", weights_dir=tmp_path)
+
+
+def test_shipped_priors_are_listed() -> None:
+    priors = available_priors()
+    assert {"general", "box"} <= set(priors)
+    for specs in priors.values():
+        for spec in specs:
+            assert (DEFAULT_WEIGHTS_DIR / spec.shape_weights).name.endswith(".pt")
+
+
+@pytest.mark.skipif(
+    not (DEFAULT_WEIGHTS_DIR / "general_shape_cpu.pt").exists(), reason="weights not trained yet"
+)
+def test_shipped_general_prior_sees_the_mug(bench_frame) -> None:
+    _, pose, full = bench_frame
+    prior = ShapePrior.load("general")
+    grid = VoxelGrid(64, 0.26, axes_world=axes_facing_camera(pose[:3, 3]))
+    prediction = prior.predict(full.colour_rgb, FULL, pose, grid)
+    occupied = prediction.probabilities > 0.5
+    assert 0 < occupied.mean() < 0.2
+    assert occupied[:, :, :2].any()  # stands on the table (k = 0 is the bottom layer)
+
+
+def test_eval_prior_command_on_a_user_mesh_file(tmp_path: Path) -> None:
+    from controller.cli import main
+
+    torch.manual_seed(0)
+    untrained = ShapePrior.untrained("cpu")
+    save_weights(untrained.sketch_net, "sketch", "cpu", tmp_path / "s.pt")
+    save_weights(untrained.shape_net, "shape", "cpu", tmp_path / "b.pt")
+    entry = {
+        "name": "general",
+        "preset": "cpu",
+        "sketch_weights": "s.pt",
+        "shape_weights": "b.pt",
+        "grid_extent_m": 0.26,
+    }
+    (tmp_path / "priors.json").write_text(json.dumps({"priors": [entry]}))
+    mesh_file = tmp_path / "carton.stl"
+    trimesh.creation.box(extents=(0.08, 0.05, 0.12)).export(mesh_file)
+    out = tmp_path / "eval.json"
+    argv = [
+        "eval",
+        "prior",
+        "--weights-dir",
+        str(tmp_path),
+        "--objects",
+        str(mesh_file),
+        "--views",
+        "1",
+        "--input",
+        "rgbd",
+        "--json",
+        str(out),
+    ]
+    assert main(argv) == 0
+    result = json.loads(out.read_text())
+    assert result["objects"][0]["name"] == "carton"
+    assert {"iou", "chamfer_mm"} <= set(result["objects"][0]) and "iou" in result["mean"]
