@@ -20,6 +20,7 @@ from controller.gelsight_commands import add_gelsight_commands
 from controller.hardware_commands import add_hardware_commands
 from controller.prior_commands import add_prior_commands
 from controller.service_commands import add_service_commands
+from drivers.base import DeviceError
 
 log = logging.getLogger("touchshape")
 
@@ -153,7 +154,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     handler: Callable[[argparse.Namespace], int] = args.handler
     try:
         return handler(args)
-    except (ConfigError, FileNotFoundError, ValueError) as error:
+    except (ConfigError, FileNotFoundError, ValueError, DeviceError) as error:
         print(f"touchshape: error: {error}", file=sys.stderr)
         return 2
 

@@ -11,19 +11,12 @@ from matplotlib import colormaps
 from PIL import Image
 
 from controller.config import Config
-from controller.motion import pad_pose_facing, tcp_pose_for_pad
+from controller.motion import MotionPlanner
+from controller.safety import Obstacles
 from drivers.factory import make_devices
-from drivers.ur5_kinematics import inverse_kinematics
 from models.geometry import invert_transform, matrix_to_ur_pose
 
 log = logging.getLogger(__name__)
-
-STANDOFF_M = 0.005
-"""Gap between the gel and the surface before the fingers open for the final contact."""
-APPROACH_M = 0.06
-"""The arm comes in along the surface normal from this far out."""
-TOUCH_WIDTH_M = 0.08
-"""Finger opening at the stand-off: the pad then protrudes past the gripper body."""
 
 
 async def capture_snapshot(
@@ -67,32 +60,36 @@ async def capture_snapshot(
         # High on the side facing the robot: the gripper body above the pad stays clear.
         touch_height_m = max(0.008, float(world.object_mesh_world.bounds[1, 2]) - 0.02)
         point, normal = world.surface_point_toward(toward_robot, touch_height_m)
-        pose_world_pad = pad_pose_facing(point, normal, STANDOFF_M)
-        tool = world.tool
-        pose_base_world = invert_transform(world.pose_world_base)
-        approach = pad_pose_facing(point, normal, APPROACH_M)
         await devices.gripper.move(
-            TOUCH_WIDTH_M, speed_m_s=0.05, force_limit_n=config.limits.max_force_n, timeout_s=10
+            config.motion.touch_width_m,
+            speed_m_s=0.05,
+            force_limit_n=config.limits.max_force_n,
+            timeout_s=10,
         )
-        # Joint move to a point out on the surface normal, then straight in to the stand-off.
-        pose_base_tcp = pose_base_world @ tcp_pose_for_pad(approach, tool, TOUCH_WIDTH_M)
-        joints = inverse_kinematics(pose_base_tcp, (await devices.arm.state()).joints_rad)
-        if joints is None:
-            raise ValueError("the approach pose for the snapshot touch is out of the arm's reach")
-        await devices.arm.move_joints(
-            joints,
-            speed_rad_s=config.limits.max_joint_speed_rad_s,
-            acceleration_rad_s2=2.0,
-            timeout_s=30.0,
+        # The controller's checked motions, clear of the true object (the sim knows it).
+        planner = MotionPlanner(
+            tool=world.tool,
+            limits=config.limits,
+            motion=config.motion,
+            pose_world_base=world.pose_world_base,
+            stroke_m=config.gripper.stroke_m,
         )
-        await devices.arm.move_linear(
-            matrix_to_ur_pose(
-                pose_base_world @ tcp_pose_for_pad(pose_world_pad, tool, TOUCH_WIDTH_M)
-            ),
-            speed_m_s=config.limits.approach_speed_m_s,
-            acceleration_m_s2=config.limits.max_tcp_acceleration_m_s2,
-            timeout_s=30.0,
+        obstacles = Obstacles(world.object_mesh_world.voxelized(0.004).fill().points)
+        touch_geometry = planner.touch_geometry(point, -np.asarray(normal))
+        arm = await devices.arm.state()
+        waypoints = planner.plan_transit(
+            world.pose_world_tcp(), arm.joints_rad, touch_geometry, obstacles
         )
+        joints = waypoints[-1].joints_rad if waypoints else arm.joints_rad
+        waypoints.append(planner.plan_approach(touch_geometry, joints, obstacles))
+        pose_base_world = invert_transform(world.pose_world_base)
+        for waypoint in waypoints:
+            await devices.arm.move_linear(
+                matrix_to_ur_pose(pose_base_world @ waypoint.pose_world_tcp),
+                speed_m_s=waypoint.speed_m_s,
+                acceleration_m_s2=config.limits.max_tcp_acceleration_m_s2,
+                timeout_s=60.0,
+            )
         reference = await devices.tactile.reference()
         touch = await devices.gripper.move(
             config.gripper.stroke_m,
