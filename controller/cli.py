@@ -6,7 +6,6 @@ import argparse
 import asyncio
 import contextlib
 import dataclasses
-import json
 import logging
 import sys
 from collections.abc import Callable, Sequence
@@ -18,6 +17,7 @@ from controller.config import ConfigError, config_to_toml, load_config
 from controller.explore_commands import add_explore_benchmark_command
 from controller.gelsight_commands import add_gelsight_commands
 from controller.hardware_commands import add_hardware_commands
+from controller.output import print_json
 from controller.prior_commands import add_prior_commands
 from controller.service_commands import add_service_commands
 from drivers.base import DeviceError
@@ -136,12 +136,7 @@ def _sim_ur_controller(args: argparse.Namespace) -> int:
 def _bench_sim(args: argparse.Namespace) -> int:
     from controller.benchmarks import benchmark_sim
 
-    result = benchmark_sim(load_config(args.config), frames=args.frames)
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(text + "\n")
+    print_json(benchmark_sim(load_config(args.config), frames=args.frames), args.json)
     return 0
 
 

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from controller.config import load_config
+from controller.output import print_json
 
 METHODS = "active-prior,random-prior,active-direct,oracle-prior"
 """All methods, the default (``controller.explore_benchmark.METHODS`` defines them)."""
@@ -129,11 +129,7 @@ def bench_explore(args: argparse.Namespace) -> int:
         calibration=load_calibration(config),
         workers=args.workers,
     )
-    text = json.dumps(result, indent=2)
-    print(json.dumps(result["summary"], indent=2))
-    if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(text + "\n")
+    print_json(result, args.json, shown=result["summary"])
     if args.plot is not None:
         plot_curves(result, args.plot)
     return 0

@@ -4,18 +4,10 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 from pathlib import Path
 
 from controller.config import load_config
-
-
-def _write_json(result: dict, path: Path | None) -> None:
-    text = json.dumps(result, indent=2)
-    print(text)
-    if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(text + "\n")
+from controller.output import print_json
 
 
 def add_prior_commands(
@@ -226,7 +218,7 @@ def train_network(args: argparse.Namespace) -> int:
         augment=not args.no_augment,
         threads=args.threads,
     )
-    print(json.dumps(train(config), indent=2))
+    print_json(train(config))
     return 0
 
 
@@ -267,7 +259,7 @@ def calibrate_shape(args: argparse.Namespace) -> int:
     }
     fold_platt(shape, scale, offset)
     save_weights(shape, "shape", args.preset, args.out)
-    _write_json(result, None)
+    print_json(result, None)
     return 0
 
 
@@ -316,7 +308,7 @@ def eval_prior(args: argparse.Namespace) -> int:
         input_mode=args.input,
         seed=args.seed,
     )
-    _write_json(result, args.json)
+    print_json(result, args.json)
     return 0
 
 
@@ -324,5 +316,5 @@ def bench_prior(args: argparse.Namespace) -> int:
     from models.prior_benchmark import benchmark_prior
 
     config = load_config(None)
-    _write_json(benchmark_prior(_bench_camera(config), repeats=args.repeats), args.json)
+    print_json(benchmark_prior(_bench_camera(config), repeats=args.repeats), args.json)
     return 0

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from controller.config import Config, load_config
 from controller.messaging import ExploreRequest
+from controller.output import print_json
 
 log = logging.getLogger(__name__)
 
@@ -128,7 +129,6 @@ def _explore(args: argparse.Namespace) -> int:
 
 
 def _bench_service(args: argparse.Namespace) -> int:
-    import json
     import tempfile
 
     from controller.pipeline import make_perception
@@ -139,11 +139,7 @@ def _bench_service(args: argparse.Namespace) -> int:
         result = benchmark_service(
             config, make_perception, Path(logs), sessions=args.sessions, touches=args.touches
         )
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(text + "\n")
+    print_json(result, args.json)
     return 0
 
 
