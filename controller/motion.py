@@ -29,7 +29,7 @@ from models.geometry import (
 
 FloatArray = NDArray[np.float64]
 
-APPROACH_EXEMPT_PARTS = ("gelsight_housing", "finger_sensor_side")
+APPROACH_EXEMPT_PARTS = ("gelsight_window", "gelsight_housing", "finger_sensor_side")
 """Parts allowed to come close to the estimate on the approach: they lead into the contact."""
 TOOL_REACH_M = 0.17
 """Flange to fingertip: a radian of tool rotation sweeps the tip about this far."""

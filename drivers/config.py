@@ -122,6 +122,10 @@ class SensorConfig:
     """From the finger's outer face to the undeformed gel surface."""
     housing_length_m: float = 0.035
     """Housing extent along the finger, ending at the finger tip."""
+    housing_recess_m: float = 0.010
+    """The housing's front face this far behind the undeformed gel surface: the gel sits on an
+    acrylic window that protrudes from the housing, so the gel, not the housing, meets a
+    surface approached within ~50 degrees of its normal."""
     pad_centre_from_tip_m: float = 0.0175
     gel_thickness_mm: float = 2.0
     max_indentation_mm: float = 1.5
@@ -157,6 +161,10 @@ class SensorConfig:
             raise ValueError("max_frame_age_s and open_timeout_s must be positive")
         if not 0 < self.max_indentation_mm < self.gel_thickness_mm:
             raise ValueError("max_indentation_mm must be in (0, gel_thickness_mm)")
+        if not self.max_indentation_mm * 1e-3 < self.housing_recess_m < self.housing_thickness_m:
+            raise ValueError(
+                "housing_recess_m must lie between max_indentation_mm and housing_thickness_m"
+            )
 
 
 @dataclass(frozen=True)

@@ -56,14 +56,19 @@ class ToolModel:
 
     def rigid_boxes(self, width_m: float) -> list[ToolBox]:
         """The tool's rigid parts at a finger opening. The gel's soft layer is left out: it may
-        be indented by up to ``max_indentation_mm``, the rigid backing behind it may not."""
+        be indented by up to ``max_indentation_mm``, the rigid window behind it may not. The
+        window (the pad's footprint) protrudes ``housing_recess_m`` from the housing."""
         body_x, body_y, body_z = self.gripper.body_size_m
         finger_x, finger_y, finger_z = self.gripper.finger_size_m
+        sensor = self.sensor
         finger_centre_z = body_z + finger_z / 2
-        housing_depth = self.sensor.housing_thickness_m - self.sensor.max_indentation_mm * 1e-3
-        housing_length = self.sensor.housing_length_m
-        housing_y = self.sensor.pad_height_mm * 1e-3 + 0.006
         housing_start_x = width_m / 2 + finger_x
+        housing_depth = sensor.housing_thickness_m - sensor.housing_recess_m
+        housing_length = sensor.housing_length_m
+        housing_y = sensor.pad_height_mm * 1e-3 + 0.006
+        window_start_x = housing_start_x + housing_depth
+        window_depth = sensor.housing_recess_m - sensor.max_indentation_mm * 1e-3
+        pad_centre_z = self.finger_tip_z_m - sensor.pad_centre_from_tip_m
 
         def box(name: str, centre: tuple[float, float, float], size: tuple[float, ...]) -> ToolBox:
             return ToolBox(name, make_transform(None, centre), np.asarray(size) / 2)
@@ -88,5 +93,10 @@ class ToolModel:
                     self.finger_tip_z_m - housing_length / 2,
                 ),
                 (housing_depth, housing_y, housing_length),
+            ),
+            box(
+                "gelsight_window",
+                (window_start_x + window_depth / 2, 0.0, pad_centre_z),
+                (window_depth, sensor.pad_height_mm * 1e-3, sensor.pad_width_mm * 1e-3),
             ),
         ]

@@ -93,7 +93,7 @@ def test_shape_clearance_and_exempt_parts() -> None:
     # 5 mm in front of the gel's rigid backing: only the sensor parts may be that close.
     pad = pose @ TOOL.pose_tcp_pad(0.08)
     in_front_of_pad = Obstacles(pad[:3, 3][None] + 0.005 * pad[:3, 2])
-    with pytest.raises(SafetyViolation, match="gelsight_housing"):
+    with pytest.raises(SafetyViolation, match="gelsight_window"):
         check_clearance(pose, 0.08, TOOL, in_front_of_pad, limits)
     check_clearance(
         pose,
@@ -101,7 +101,7 @@ def test_shape_clearance_and_exempt_parts() -> None:
         TOOL,
         in_front_of_pad,
         limits,
-        exempt_parts=("gelsight_housing", "finger_sensor_side"),
+        exempt_parts=("gelsight_window", "gelsight_housing", "finger_sensor_side"),
     )
 
 
