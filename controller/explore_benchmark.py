@@ -61,7 +61,7 @@ from controller.config import Config
 from controller.messaging import ExploreRequest
 from controller.motion import pad_pose_facing, tcp_pose_for_pad
 from controller.perception import ShapeEstimate, TouchMeasurement, TouchOutcome, TouchTarget
-from controller.pipeline import LearnedPerception
+from controller.pipeline import REPEAT_RADIUS_M, LearnedPerception
 from drivers.base import RGBDFrame, TactileFrame
 from drivers.sim.camera import SimKinect
 from drivers.sim.gelsight import SimGelSight, gel_pad_spec
@@ -104,8 +104,6 @@ MAX_START_STANDOFF_M = 0.045
 """The farthest start: the pad still sweeps 9 mm past the target."""
 FREE_AIR_POSE_WORLD_TCP = make_transform(None, (0.0, 0.0, 0.5))
 """Where the gripper is homed: fingers pointing up, 50 cm above the object point."""
-REPEAT_RADIUS_M = 0.005
-"""A touch aimed this close to an earlier one (same direction) counts as a repeat."""
 MAX_OBJECT_HEIGHT_M, MAX_OBJECT_WIDTH_M = 0.25, 0.20
 """Mesh files larger than this are scaled down to fit the 26 cm voxel grid."""
 

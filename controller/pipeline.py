@@ -32,6 +32,7 @@ from models.policy import (
     above_table_filter,
     all_of,
     facing_surface_filter,
+    not_repeated_filter,
     predicted_bounding_box_world,
     random_touch,
     touch_candidates,
@@ -55,13 +56,18 @@ from models.touch_constraints import (
 
 log = logging.getLogger(__name__)
 
-MAX_APPROACH_ANGLE_DEG = 60.0
-"""Approach within this angle of the predicted surface normal (the paper: along the normal)."""
+MAX_APPROACH_ANGLE_DEG = 45.0
+"""Approach within this angle of the predicted surface normal (the paper: along the normal).
+The gel's window protrudes far enough that the gel meets a face tilted up to ~50 degrees first
+(``drivers.tool``)."""
 CONTACT_STRIDE_PX = 8
 """Every 8th pixel of the contact patch becomes a constraint ray (0.24 mm apart: far below a
 voxel, so no information is lost)."""
 FREE_RAY_SPACING_M = 0.002
 RANDOM_POLICY_TRIES = 50
+REPEAT_RADIUS_M = 0.005
+"""A target this close to an earlier one, approached from the same direction, is not chosen
+again: the earlier touch already answered what it could."""
 
 
 def load_calibration(config: Config) -> GelSightCalibration:
@@ -138,14 +144,24 @@ class LearnedPerception:
         outcomes: list[TouchOutcome],
         allowed: Callable[[TouchTarget], bool],
     ) -> TouchTarget | None:
+        # What the touches measured is known: the policy sees it written into the estimate, so
+        # the windows they answered are confident and are not chosen again.
+        known = direct_edit(estimate.probabilities, self._constraints(outcomes))
         feasible = all_of(
             above_table_filter(
                 self.config.motion.approach_distance_m, self.config.limits.table_clearance_m
             ),
             facing_surface_filter(estimate.probabilities, self.grid, MAX_APPROACH_ANGLE_DEG),
+            not_repeated_filter(
+                [
+                    (o.measurement.target.target_world, o.measurement.target.direction_world)
+                    for o in outcomes
+                ],
+                REPEAT_RADIUS_M,
+            ),
         )
         if request.policy == "active":
-            for candidate in touch_candidates(estimate.probabilities, self.grid, feasible):
+            for candidate in touch_candidates(known, self.grid, feasible):
                 target = TouchTarget(
                     candidate.target_world, candidate.approach_direction_world, candidate.score
                 )
@@ -168,6 +184,7 @@ class LearnedPerception:
         reconstruction = self._reconstructor(measurement).reconstruct(measurement.tactile.image_bgr)
         pose_world_pad = measurement.pose_world_pad
         direction = pose_world_pad[:3, 2]
+        start = measurement.pad_start_world
         contact = None
         if measurement.contact:
             contact = contact_geometry(
@@ -179,15 +196,19 @@ class LearnedPerception:
         if contact is not None:
             points = contact.points_world_m(pose_world_pad)
             free = free_pad_points(pose_world_pad, points, self.pad_size_m, FREE_RAY_SPACING_M)
-            touch = TouchResult.from_contact(points, direction, measurement.pad_start_world, free)
-        elif measurement.contact:
-            # Stopped by force but the gel shows nothing: another part touched. The sweep up
-            # to here is still known to be free in front of the pad.
-            log.warning("contact force without a tactile imprint: only the sweep is used")
-            points = np.zeros((0, 3))
-            touch = self._sweep(measurement)
         else:
+            # A miss, or stopped by force with no imprint: a rigid part met the object first,
+            # or a face larger than the pad pressed the gel evenly (photometric stereo sees
+            # slopes, not uniform depth). Only the sweep up to the stop is known to be free.
             points = np.zeros((0, 3))
+            free = np.zeros((0, 3))
+        # A stop right at the start can leave points behind the start plane (the gel sinks in):
+        # they tell nothing about the sweep.
+        points = points[(points - start) @ direction >= 0]
+        free = free[(free - start) @ direction >= 0]
+        if len(points):
+            touch = TouchResult.from_contact(points, direction, start, free)
+        else:
             touch = self._sweep(measurement)
         return TouchOutcome(
             measurement=measurement,
@@ -199,9 +220,7 @@ class LearnedPerception:
     def refine(
         self, estimate: ShapeEstimate, outcomes: list[TouchOutcome], request: ExploreRequest
     ) -> ShapeEstimate:
-        constraints = VoxelConstraints.none(self.grid.resolution)
-        for outcome in outcomes:
-            constraints = constraints.merged(outcome.constraints)
+        constraints = self._constraints(outcomes)
         if request.update == "direct" or estimate.latent is None:
             probabilities = direct_edit(estimate.vision_probabilities, constraints)
             return ShapeEstimate(
@@ -228,6 +247,13 @@ class LearnedPerception:
         )
 
     # --- helpers --------------------------------------------------------------------------------
+
+    def _constraints(self, outcomes: list[TouchOutcome]) -> VoxelConstraints:
+        """The voxel constraints of all touches so far."""
+        constraints = VoxelConstraints.none(self.grid.resolution)
+        for outcome in outcomes:
+            constraints = constraints.merged(outcome.constraints)
+        return constraints
 
     def _reconstructor(self, measurement: TouchMeasurement) -> TactileReconstructor:
         """One reconstructor per reference frame (its set-up cost is paid once a session)."""

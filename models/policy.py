@@ -527,6 +527,29 @@ def facing_surface_filter(voxels: ArrayLike, grid: VoxelGrid, max_angle_deg: flo
     return feasible
 
 
+def not_repeated_filter(
+    touches_world: Sequence[tuple[ArrayLike, ArrayLike]],
+    radius_m: float,
+    max_angle_deg: float = 10.0,
+) -> TargetFilter:
+    """Feasible unless an earlier touch (target, approach direction; world) aimed within
+    ``radius_m`` of the target from within ``max_angle_deg`` of the same direction."""
+    earlier = [
+        (np.asarray(point, dtype=float), np.asarray(direction, dtype=float))
+        for point, direction in touches_world
+    ]
+    min_cosine = math.cos(math.radians(max_angle_deg))
+
+    def feasible(targets_world: FloatArray, direction_world: FloatArray) -> NDArray[np.bool_]:
+        keep = np.ones(len(targets_world), dtype=bool)
+        for point, direction in earlier:
+            if float(direction @ direction_world) >= min_cosine:
+                keep &= np.linalg.norm(targets_world - point, axis=1) >= radius_m
+        return keep
+
+    return feasible
+
+
 def all_of(*filters: TargetFilter) -> TargetFilter:
     """A filter that passes where every one of ``filters`` passes."""
 

@@ -15,6 +15,7 @@ voxel, an empty crossing only proves part of it is free. See docs/touch.md.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -27,6 +28,8 @@ from models.geometry import VoxelGrid, invert_transform, transform_points
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]
 
+DEFAULT_OCCUPIED_DEPTH_VOXELS = math.sqrt(3.0) / 2.0
+"""How far beyond a contact point (voxels, along the ray) the occupied voxel is taken."""
 # Rays of one touch whose end points agree to this fraction of a voxel traverse nearly the same
 # voxels; keeping one of them bounds the work when a height map yields 10^5 contact points.
 DEFAULT_RAY_SPACING_VOXELS = 0.25
@@ -301,11 +304,17 @@ def touch_constraints(
     touch: TouchResult,
     grid: VoxelGrid,
     ray_spacing_voxels: float = DEFAULT_RAY_SPACING_VOXELS,
+    occupied_depth_voxels: float = DEFAULT_OCCUPIED_DEPTH_VOXELS,
 ) -> VoxelConstraints:
     """Constraints of one touch on a grid: every ray of the patch, traversed exactly.
 
-    Contact rays: voxels crossed before the contact voxel are empty, the voxel holding the
-    contact point is occupied (when inside the grid). Free rays: all crossed voxels are empty.
+    Contact rays: crossed voxels whose centres lie in front of the contact point are empty; the
+    voxel holding the point ``occupied_depth_voxels`` beyond the contact along the ray is
+    occupied (when inside the grid). Why beyond: a voxel is occupied when its centre is inside
+    the object, and the voxel holding a surface point has its centre outside about half the
+    time; a point sqrt(3)/2 voxel deep lies in a voxel whose centre is behind a surface facing
+    the ray.
+    Voxels between stay unconstrained. Free rays: all crossed voxels are empty.
     Rays whose end points fall in the same ``ray_spacing_voxels`` cell are traversed once.
     """
     starts = grid.world_to_voxel(touch.ray_starts_world)
@@ -317,15 +326,17 @@ def touch_constraints(
 
     resolution = grid.resolution
     ray, voxels = traverse_segments(starts, ends, resolution)
-    contact_voxel = np.floor(ends[hit]).astype(np.int64)
-    contact_inside = np.all((contact_voxel >= 0) & (contact_voxel < resolution), axis=1)
-    occupied = contact_voxel[contact_inside]
-    # A contact ray's own contact voxel is not "in front" of it; drop it from its empties.
-    hit_rays = np.flatnonzero(hit)
-    end_voxel = np.full((len(starts), 3), -1, np.int64)
-    end_voxel[hit_rays] = contact_voxel
-    is_own_contact = np.all(voxels == end_voxel[ray], axis=1)
-    return VoxelConstraints.from_voxels(resolution, voxels[~is_own_contact], occupied)
+    origin_voxel, ahead_voxel = grid.world_to_voxel(
+        np.stack([np.zeros(3), touch.approach_direction_world])
+    )
+    direction_voxel = (ahead_voxel - origin_voxel) / np.linalg.norm(ahead_voxel - origin_voxel)
+    inner_voxel = np.floor(ends[hit] + occupied_depth_voxels * direction_voxel).astype(np.int64)
+    inside = np.all((inner_voxel >= 0) & (inner_voxel < resolution), axis=1)
+    occupied = inner_voxel[inside]
+    # Before a contact, a crossed voxel is empty only if its centre is in front of the contact
+    # point: an oblique ray also clips voxels whose centres lie behind the surface.
+    behind_contact = hit[ray] & (((voxels + 0.5) - ends[ray]) @ direction_voxel >= 0)
+    return VoxelConstraints.from_voxels(resolution, voxels[~behind_contact], occupied)
 
 
 def constraints_from_touches(

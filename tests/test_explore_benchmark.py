@@ -78,7 +78,13 @@ def test_contact_on_a_box_edge_gives_contact_points(box_bench, config, calibrati
     outcome = perception_for(config, calibration).interpret(measurement)
     points = outcome.contact_points_world
     assert len(points) > 0
-    assert np.abs(points[:, :2] - edge[:2]).max() < 2e-3  # on the vertical edge
+    # On the box's surface, next to the vertical edge.
+    box_points = np.abs(points - [0.0, 0.0, BOX_HALF_M])
+    outside = np.linalg.norm(np.maximum(box_points - BOX_HALF_M, 0.0), axis=1)
+    inside = np.maximum(BOX_HALF_M - box_points.max(axis=1), 0.0)
+    assert np.percentile(outside + inside, 90) < 1e-3
+    assert np.max(outside + inside) < 2e-3
+    assert np.abs(points[:, :2] - edge[:2]).max() < 4e-3
     assert len(outcome.constraints.occupied) > 0 and len(outcome.constraints.empty) > 0
 
 

@@ -19,10 +19,12 @@ from models.tactile_calibration import (
 )
 from models.tactile_evaluation import evaluate_press, fit_sphere_radius, summarise
 from models.tactile_reconstruction import (
+    FreeBorderPoissonSolver,
     PoissonSolver,
     TactileReconstructor,
     contact_geometry,
     contact_mask,
+    imprint_at_border,
 )
 from models.tactile_sim import GelSightSimulator
 
@@ -53,6 +55,29 @@ def test_poisson_solver_recovers_a_known_surface() -> None:
     truth = bump_px * MM_PER_PX
     assert np.abs(height - truth).max() < 1e-3 * 0.8  # measured 8e-5 of the peak
     assert height.max() == pytest.approx(0.8, rel=0.01)
+
+
+def test_free_border_recovers_an_imprint_running_off_the_edge() -> None:
+    """A 0.8 mm ridge along the right edge (a cylinder pressed at the pad's side): a zero border
+    flattens it, the free border keeps its depth; the imprint is detected at the border, a
+    central bump is not."""
+    shape = (480, 640)
+    rows, cols = np.indices(shape, dtype=np.float64)
+    sigma = 60.0
+    ridge_px = 0.8 / MM_PER_PX * np.exp(-((cols - 620) ** 2) / (2 * sigma**2))
+    grad_x = (-(cols - 620) / sigma**2 * ridge_px).astype(np.float32)
+    grad_y = np.zeros(shape, np.float32)
+    truth = ridge_px * MM_PER_PX
+    zero_border = PoissonSolver(shape, MM_PER_PX).solve(grad_x, grad_y)
+    free_border = FreeBorderPoissonSolver(shape, MM_PER_PX).solve(grad_x, grad_y)
+    assert zero_border.max() < 0.4 * 0.8
+    assert free_border.max() == pytest.approx(0.8, rel=0.05)
+    assert np.abs(free_border - truth).max() < 0.05
+    assert imprint_at_border(grad_x, grad_y)
+    bump_px = 0.8 / MM_PER_PX * np.exp(-((cols - 320) ** 2 + (rows - 240) ** 2) / (2 * 40.0**2))
+    bump_x = (-(cols - 320) / 40.0**2 * bump_px).astype(np.float32)
+    bump_y = (-(rows - 240) / 40.0**2 * bump_px).astype(np.float32)
+    assert not imprint_at_border(bump_x, bump_y)
 
 
 def test_held_out_real_presses_meet_the_bar(

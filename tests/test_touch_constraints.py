@@ -151,8 +151,9 @@ def test_contact_touch_on_a_wall() -> None:
     occupied = constraints.occupied_ijk()
     empty = constraints.empty_ijk()
     # World x = 0.0325 is voxel coordinate i = 8 - 3.25 = 4.75: the contact voxel is i = 4, the
-    # pad came from world -x = high i, so i = 5..15 are in front of it.
-    assert set(occupied[:, 0]) == {4}
+    # pad came from world -x = high i, so i = 5..15 are in front of it. The occupied voxel holds
+    # the point sqrt(3)/2 voxel deeper, i = 3.88; the contact voxel i = 4 stays unconstrained.
+    assert set(occupied[:, 0]) == {3}
     assert set(empty[:, 0]) == set(range(5, 16))
     # The 19 x 14 mm patch centred on voxel corner (j, k) = (8, 5) covers j = 7, 8 and k = 4, 5.
     world_y = grid.voxel_to_world(occupied + 0.5)[:, 1]
@@ -160,6 +161,28 @@ def test_contact_touch_on_a_wall() -> None:
     assert np.all(np.abs(world_y) < 0.015) and np.all(np.abs(world_z - 0.05) < 0.015)
     assert len(occupied) == 4
     assert len(empty) == 11 * len(occupied)  # every patch ray crosses the same columns
+
+
+def test_occupied_voxel_centres_lie_behind_a_plane_facing_the_ray() -> None:
+    """For any approach direction onto a plane normal to it, the voxel called occupied has its
+    centre behind the plane (inside the object, as voxelisation by centres decides), and no
+    voxel called empty has its centre behind it."""
+    grid = _wall_grid()
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        direction = rng.normal(size=3)
+        direction /= np.linalg.norm(direction)
+        centre = rng.uniform(-0.03, 0.03, size=3) + np.array([0.0, 0.0, 0.08])
+        pose_world_pad = make_transform(frame_from_z_axis(direction), centre)
+        contacts = pad_grid_world(pose_world_pad, (0.019, 0.014), 0.001)
+        touch = TouchResult.from_contact(contacts, direction, centre - 0.05 * direction)
+        constraints = touch_constraints(touch, grid)
+        depth_occupied = (
+            grid.voxel_to_world(constraints.occupied_ijk() + 0.5) - centre
+        ) @ direction
+        depth_empty = (grid.voxel_to_world(constraints.empty_ijk() + 0.5) - centre) @ direction
+        assert len(depth_occupied) and np.all(depth_occupied > 0)
+        assert np.all(depth_empty < 0)
 
 
 def test_free_pad_points_keep_away_from_contacts() -> None:
