@@ -140,6 +140,10 @@ class ModelsConfig:
     device: str = "cpu"
     refine_learning_rate: float = 1e-3
     refine_iterations_per_touch: int = 10
+    refine_loss: Literal["sum", "balanced"] = "balanced"
+    """The touch loss's form (models.refinement.touch_loss): "sum" as the paper writes it, or
+    "balanced" (mean over empty + mean over occupied voxels), which keeps the many empty voxels
+    of a touch from shrinking the shape (docs/explore.md)."""
 
 
 @dataclass(frozen=True)

@@ -372,7 +372,11 @@ class _ObjectRun:
         for touched in (*outcomes, outcome):
             constraints = constraints.merged(touched.constraints)
         loss = tuple(
-            float(touch_loss(torch.from_numpy(e.probabilities), constraints))
+            float(
+                touch_loss(
+                    torch.from_numpy(e.probabilities), constraints, self.config.models.refine_loss
+                )
+            )
             for e in (estimate, refined)
         )
         before, after = estimate.probabilities > 0.5, refined.probabilities > 0.5
@@ -718,6 +722,7 @@ def run_explore_benchmark(
         "seed": settings.seed,
         "refine_learning_rate": models.refine_learning_rate,
         "refine_iterations_per_touch": models.refine_iterations_per_touch,
+        "refine_loss": models.refine_loss,
         "chamfer": "mm, unsquared: mean NN distance pred->gt + gt->pred, 10k samples each; "
         "null for an empty prediction",
         "objects": rows,
@@ -751,8 +756,13 @@ def plot_curves(result: dict, path: Path) -> None:
     plt.close(figure)
 
 
-def with_refinement(config: Config, learning_rate: float | None, iterations: int | None) -> Config:
-    """``config`` with the refinement's learning rate / iterations replaced where given."""
+def with_refinement(
+    config: Config,
+    learning_rate: float | None,
+    iterations: int | None,
+    loss: Literal["sum", "balanced"] | None = None,
+) -> Config:
+    """``config`` with the refinement's learning rate / iterations / loss replaced where given."""
     models = config.models
     return replace(
         config,
@@ -764,5 +774,6 @@ def with_refinement(config: Config, learning_rate: float | None, iterations: int
             refine_iterations_per_touch=(
                 models.refine_iterations_per_touch if iterations is None else iterations
             ),
+            refine_loss=models.refine_loss if loss is None else loss,
         ),
     )

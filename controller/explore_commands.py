@@ -70,6 +70,12 @@ def add_explore_benchmark_command(bench_commands: argparse._SubParsersAction) ->
     explore.add_argument(
         "--refine-iterations", type=int, default=None, help="iterations per touch (config's)"
     )
+    explore.add_argument(
+        "--refine-loss",
+        choices=("sum", "balanced"),
+        default=None,
+        help="touch loss form (config's models.refine_loss)",
+    )
     explore.add_argument("--seed", type=int, default=0)
     explore.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     explore.add_argument(
@@ -98,7 +104,9 @@ def bench_explore(args: argparse.Namespace) -> int:
     from models.prior import ShapePrior
 
     torch.set_num_threads(args.threads)
-    config = with_refinement(load_config(args.config), args.refine_lr, args.refine_iterations)
+    config = with_refinement(
+        load_config(args.config), args.refine_lr, args.refine_iterations, args.refine_loss
+    )
     prior_name = args.prior or config.models.prior
     settings = ExploreSettings(
         touches=args.touches,

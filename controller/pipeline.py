@@ -237,6 +237,7 @@ class LearnedPerception:
             constraints,
             learning_rate=models.refine_learning_rate,
             iterations=models.refine_iterations_per_touch,
+            loss=models.refine_loss,
         )
         return ShapeEstimate(
             self.grid,

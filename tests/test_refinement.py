@@ -54,6 +54,28 @@ def test_loss_value_and_gradient_match_the_paper() -> None:
     torch.testing.assert_close(gradient.reshape(-1), expected)
 
 
+def test_balanced_loss_weighs_empty_and_occupied_voxels_equally() -> None:
+    generator = torch.Generator().manual_seed(1)
+    voxels = torch.rand(N, N, N, generator=generator, dtype=torch.float64, requires_grad=True)
+    constraints = _constraints()
+    loss = touch_loss(voxels, constraints, "balanced")
+    (gradient,) = torch.autograd.grad(loss, voxels)
+    flat_v = voxels.detach().reshape(-1)
+    empty, occupied = constraints.empty, constraints.occupied
+    expected_loss = (flat_v[empty] ** 2).mean() + ((1 - flat_v[occupied]) ** 2).mean()
+    assert float(loss.detach()) == pytest.approx(float(expected_loss))
+    expected = torch.zeros(N**3, dtype=torch.float64)
+    expected[empty] = 2 * flat_v[empty] / len(empty)
+    expected[occupied] = 2 * (flat_v[occupied] - 1) / len(occupied)
+    torch.testing.assert_close(gradient.reshape(-1), expected)
+    only_empty = VoxelConstraints.from_voxels(N, [[1, 1, 1]], np.zeros((0, 3), int))
+    assert float(touch_loss(voxels, only_empty, "balanced")) == pytest.approx(
+        float(flat_v[only_empty.empty[0]] ** 2)
+    )
+    with pytest.raises(ValueError, match="unknown touch loss"):
+        touch_loss(voxels, constraints, "mean")  # type: ignore[arg-type]
+
+
 def test_loss_rejects_a_volume_of_another_size() -> None:
     with pytest.raises(ValueError):
         touch_loss(torch.zeros(4, 4, 4), _constraints())
