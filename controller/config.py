@@ -138,12 +138,25 @@ class ModelsConfig:
     weights_dir: str = ""
     """Empty = the weights shipped with the package."""
     device: str = "cpu"
-    refine_learning_rate: float = 1e-3
+    refine_learning_rate: float = 3e-3
+    """Adam's step size on the latent (the paper: 1e-3; docs/explore.md has the measured
+    reason for 3e-3 together with the anchor)."""
     refine_iterations_per_touch: int = 10
     refine_loss: Literal["sum", "balanced"] = "balanced"
     """The touch loss's form (models.refinement.touch_loss): "sum" as the paper writes it, or
     "balanced" (mean over empty + mean over occupied voxels), which keeps the many empty voxels
     of a touch from shrinking the shape (docs/explore.md)."""
+    refine_anchor_weight: float = 0.03
+    """Weight of the latent's squared distance to the vision latent in the refinement loss
+    (models.refinement.refine_latent); 0 = the paper's loss alone."""
+    refine_write_measurements: bool = True
+    """Write the touches' measured voxels into the refined shape (empty 0, occupied 1)."""
+
+    def __post_init__(self) -> None:
+        if self.refine_learning_rate <= 0 or self.refine_iterations_per_touch < 0:
+            raise ValueError("refine_learning_rate must be > 0, refine_iterations_per_touch >= 0")
+        if self.refine_anchor_weight < 0:
+            raise ValueError("refine_anchor_weight must be >= 0")
 
 
 @dataclass(frozen=True)

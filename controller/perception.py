@@ -30,9 +30,12 @@ class ShapeEstimate:
     sketches: dict[str, NDArray] = field(default_factory=dict)
     vision_probabilities: NDArray[np.float32] | None = None
     """The estimate from vision alone (what Direct Edit edits)."""
+    vision_latent: Any | None = None
+    """The prior's latent code from vision alone (what the refinement stays near)."""
 
-    def occupied_points_world(self) -> FloatArray:
-        occupied = np.argwhere(self.probabilities > 0.5)
+    def occupied_points_world(self, threshold: float = 0.5) -> FloatArray:
+        """Centres of the voxels whose probability is above ``threshold`` (world, metres)."""
+        occupied = np.argwhere(self.probabilities > threshold)
         return self.grid.voxel_to_world(occupied + 0.5)
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -135,6 +136,7 @@ class LearnedPerception:
                 "silhouette": (prediction.silhouette * 255).astype(np.uint8),
             },
             vision_probabilities=prediction.probabilities,
+            vision_latent=prediction.latent,
         )
 
     def select(
@@ -223,13 +225,7 @@ class LearnedPerception:
         constraints = self._constraints(outcomes)
         if request.update == "direct" or estimate.latent is None:
             probabilities = direct_edit(estimate.vision_probabilities, constraints)
-            return ShapeEstimate(
-                self.grid,
-                probabilities,
-                estimate.latent,
-                estimate.sketches,
-                estimate.vision_probabilities,
-            )
+            return replace(estimate, probabilities=probabilities)
         models = self.config.models
         result = refine_latent(
             self.prior(request.prior).decode,
@@ -238,14 +234,17 @@ class LearnedPerception:
             learning_rate=models.refine_learning_rate,
             iterations=models.refine_iterations_per_touch,
             loss=models.refine_loss,
+            anchor_latent=(
+                None if estimate.vision_latent is None else torch.as_tensor(estimate.vision_latent)
+            ),
+            anchor_weight=models.refine_anchor_weight,
         )
-        return ShapeEstimate(
-            self.grid,
-            result.voxels.numpy().astype(np.float32),
-            result.latent,
-            estimate.sketches,
-            estimate.vision_probabilities,
-        )
+        # The prior spreads the touches over the shape; what they measured is then written in,
+        # so the reported shape agrees with every contact and every free sweep.
+        probabilities = result.voxels.numpy().astype(np.float32)
+        if models.refine_write_measurements:
+            probabilities = direct_edit(probabilities, constraints)
+        return replace(estimate, probabilities=probabilities, latent=result.latent)
 
     # --- helpers --------------------------------------------------------------------------------
 

@@ -91,6 +91,8 @@ def refine_latent(
     iterations: int = 10,
     optimizer: Literal["adam", "sgd"] = "adam",
     loss: TouchLossKind = "sum",
+    anchor_latent: Tensor | None = None,
+    anchor_weight: float = 0.0,
 ) -> RefinementResult:
     """Update the latent so the decoded shape agrees with the touches (the paper's refinement).
 
@@ -98,8 +100,18 @@ def refine_latent(
     the vision estimate). The decoder's parameters are left untouched: only the latent's
     gradient is computed. Returns detached tensors.
     """
-    if iterations < 0 or learning_rate <= 0:
-        raise ValueError("iterations must be >= 0 and learning_rate positive")
+    if iterations < 0 or learning_rate <= 0 or anchor_weight < 0:
+        raise ValueError("iterations and anchor_weight must be >= 0 and learning_rate positive")
+    if anchor_weight > 0 and anchor_latent is None:
+        raise ValueError("anchor_weight needs an anchor_latent")
+    anchor = None if anchor_latent is None else anchor_latent.detach().reshape(latent.shape)
+
+    def objective(voxels: Tensor, variable: Tensor) -> Tensor:
+        value = touch_loss(voxels, constraints, loss)
+        if anchor is not None and anchor_weight > 0:
+            value = value + anchor_weight * ((variable - anchor) ** 2).sum()
+        return value
+
     variable = latent.detach().clone().requires_grad_(True)
     if optimizer == "adam":
         step: torch.optim.Optimizer = torch.optim.Adam([variable], lr=learning_rate)
@@ -110,13 +122,13 @@ def refine_latent(
     losses: list[float] = []
     with torch.enable_grad():
         for _ in range(iterations):
-            value = touch_loss(decode_volume(decode, variable), constraints, loss)
+            value = objective(decode_volume(decode, variable), variable)
             (variable.grad,) = torch.autograd.grad(value, variable)
             step.step()
             losses.append(float(value.detach()))
     with torch.no_grad():
         voxels = decode_volume(decode, variable)
-        losses.append(float(touch_loss(voxels, constraints, loss)))
+        losses.append(float(objective(voxels, variable)))
     return RefinementResult(variable.detach(), voxels.detach(), losses)
 
 

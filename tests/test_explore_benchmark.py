@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 
 from controller.cli import build_parser
@@ -22,6 +23,7 @@ from controller.explore_benchmark import (
     run_explore_benchmark,
     summarise,
 )
+from controller.messaging import ExploreRequest
 from controller.perception import TouchTarget
 from controller.pipeline import LearnedPerception, load_calibration
 from models.evaluation import EvalObject
@@ -86,6 +88,38 @@ def test_contact_on_a_box_edge_gives_contact_points(box_bench, config, calibrati
     assert np.max(outside + inside) < 2e-3
     assert np.abs(points[:, :2] - edge[:2]).max() < 4e-3
     assert len(outcome.constraints.occupied) > 0 and len(outcome.constraints.empty) > 0
+
+
+def test_refinement_writes_the_measured_voxels_into_the_shape(
+    box_bench, config, calibration
+) -> None:
+    """The pipeline refines the latent (anchored to the vision latent) and then writes what the
+    touch measured into the refined shape: its empty voxels 0, its occupied ones 1."""
+    from controller.perception import ShapeEstimate
+    from models.prior import ShapePrior
+
+    edge = np.array([BOX_HALF_M, BOX_HALF_M, 0.04])
+    target = TouchTarget(edge, np.array([-1.0, -1.0, 0.0]) / np.sqrt(2))
+    measurement = box_bench.touch(target, noise_seed=(0,))
+    perception = perception_for(config, calibration)
+    perception._priors["general"] = ShapePrior.untrained("cpu")
+    outcome = perception.interpret(measurement)
+    latent = torch.randn(200, generator=torch.Generator().manual_seed(0))
+    shape = (perception.grid.resolution,) * 3
+    vision = ShapeEstimate(
+        perception.grid,
+        np.full(shape, 0.5, np.float32),
+        latent,
+        vision_probabilities=np.full(shape, 0.5, np.float32),
+        vision_latent=latent,
+    )
+    request = ExploreRequest(update="prior")
+    refined = perception.refine(vision, [outcome], request)
+    flat = refined.probabilities.reshape(-1)
+    assert np.all(flat[outcome.constraints.empty] == 0.0)
+    assert np.all(flat[outcome.constraints.occupied] == 1.0)
+    assert not torch.equal(torch.as_tensor(refined.latent), latent)
+    assert refined.vision_latent is latent
 
 
 def test_sweep_through_free_space_is_a_miss_over_the_full_stroke(box_bench, config) -> None:

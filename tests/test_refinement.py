@@ -110,6 +110,41 @@ def test_adam_moves_each_latent_coordinate_by_about_the_learning_rate() -> None:
     torch.testing.assert_close(step[moved], torch.full_like(step[moved], 1e-3), rtol=1e-3, atol=0)
 
 
+def test_the_anchor_keeps_the_latent_near_the_vision_latent() -> None:
+    """The anchor term's gradient is 2 w (z - z0) (checked through SGD), and a strong anchor
+    holds the latent closer to it than the touches alone do."""
+    decoder = TinyDecoder().eval()
+    anchor = torch.randn(1, 200, generator=torch.Generator().manual_seed(5))
+    latent = anchor + 0.1
+    constraints = _constraints()
+    free = refine_latent(decoder, latent, constraints, 1e-2, iterations=20, loss="balanced")
+    held = refine_latent(
+        decoder,
+        latent,
+        constraints,
+        1e-2,
+        iterations=20,
+        loss="balanced",
+        anchor_latent=anchor,
+        anchor_weight=10.0,
+    )
+    assert (held.latent - anchor).norm() < (free.latent - anchor).norm()
+    only_anchor = refine_latent(
+        decoder,
+        latent,
+        VoxelConstraints.none(N),
+        0.01,
+        iterations=1,
+        optimizer="sgd",
+        loss="balanced",
+        anchor_latent=anchor,
+        anchor_weight=1.0,
+    )
+    torch.testing.assert_close(only_anchor.latent, latent - 0.01 * 2.0 * (latent - anchor))
+    with pytest.raises(ValueError, match="anchor_latent"):
+        refine_latent(decoder, latent, constraints, anchor_weight=1.0)
+
+
 def test_sgd_follows_the_negative_gradient() -> None:
     decoder = TinyDecoder().eval()
     latent = torch.randn(1, 200, generator=torch.Generator().manual_seed(3)).requires_grad_(True)
