@@ -2,10 +2,12 @@
 
 reconstruct: the shape prior (2.5D sketches -> voxels through a 200-d latent) on the camera frame.
 select: the active policy (least summed confidence |v - 0.5| over a sensor window, yaws every 90
-and pitches every 10 degrees) or the random policy, the first candidate the motion planner
-accepts. interpret: GelSight height map -> contact points -> voxel constraints along every ray
-of the pad (or the emptied sweep of a miss). refine: the latent updated by the paper's touch
-loss over all touches so far, or the Direct Edit baseline on the vision estimate.
+and pitches every 10 degrees) on the estimate with the touches' measurements written in, or the
+random policy; the first candidate the motion planner accepts. interpret: GelSight height map ->
+contact points -> voxel constraints along every ray of the pad (or the emptied sweep of a miss
+or a force stop without imprint). refine: the latent updated by the touch loss over all touches
+so far (balanced, anchored to the vision latent: ``[models]`` config and docs/explore.md), the
+measurements then written in; or the Direct Edit baseline on the vision estimate.
 """
 
 from __future__ import annotations
