@@ -61,6 +61,11 @@ class LimitsConfig:
     """Gripper force that counts as a collision (fault)."""
     contact_force_n: float = 5.0
     """Gripper force that counts as a touch contact."""
+    approach_contact_force_n: float = 0.2
+    """Gripper force that stops the arm's approach (the fingers then make the contact): the
+    first reading above the gripper's noise. On a face tilted to the pad, or an edge meeting
+    the gel near its rim, the force grows slowly, and the rigid window behind the gel must not
+    reach the object before a reading shows it; the arm moves 0.5 mm between readings."""
     table_clearance_m: float = 0.01
     shape_clearance_m: float = 0.01
 
@@ -80,6 +85,8 @@ class LimitsConfig:
             raise ValueError("speeds, accelerations and forces must be positive")
         if self.contact_force_n >= self.max_force_n:
             raise ValueError("contact_force_n must be below max_force_n")
+        if not 0 < self.approach_contact_force_n <= self.contact_force_n:
+            raise ValueError("approach_contact_force_n must be in (0, contact_force_n]")
 
 
 @dataclass(frozen=True)

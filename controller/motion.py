@@ -10,6 +10,7 @@ checked at poses ``path_check_step_m`` apart (workspace, reach, joint continuity
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,7 +18,13 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
 from controller.config import LimitsConfig, MotionConfig
-from controller.safety import Obstacles, SafetyViolation, check_pose, check_speed
+from controller.safety import (
+    Obstacles,
+    SafetyViolation,
+    check_pose,
+    check_reachable,
+    check_speed,
+)
 from drivers.tool import ToolModel
 from models.geometry import (
     frame_from_z_axis,
@@ -29,12 +36,27 @@ from models.geometry import (
 
 FloatArray = NDArray[np.float64]
 
-APPROACH_EXEMPT_PARTS = ("gelsight_window", "gelsight_housing", "finger_sensor_side")
-"""Parts allowed to come close to the estimate on the approach: they lead into the contact."""
+APPROACH_EXEMPT_PARTS = ("gelsight_window",)
+"""The part carrying the gel leads into the contact: on the approach it may come up to the
+estimate itself (the force readings guard it)."""
+APPROACH_NEAR_PARTS = ("gelsight_housing", "finger_sensor_side")
+"""On the approach these may come up to where the object may be, without the margin: they sit
+behind the gel, but no force reading guards them (an edge can meet the housing first)."""
 TOOL_REACH_M = 0.17
 """Flange to fingertip: a radian of tool rotation sweeps the tip about this far."""
 MIN_LINE_SPEED_M_S = 0.002
 """A line whose joint rates would force the TCP slower than this passes a singularity."""
+JOINT_STEP_RESOLUTION_RAD = 0.02
+"""Between two checked poses whose joints differ by more than this, the line is bisected (IK
+only) to find the fastest joint rate: near a wrist singularity the rate peaks between poses."""
+MAX_BISECTIONS = 10
+PURE_TURN_M = 0.001
+"""A line moving the TCP less than this is timed by its rotation."""
+DETOUR_BACK_OFFS_M = (0.0, 0.05, 0.1)
+"""How much further back along the approach line a detour may come down before moving in."""
+MAX_LINE_ROTATION_RAD = np.pi / 2
+"""Detours turn the tool at most this much per straight line: a half-turn has no unique
+shortest rotation, so the planner and the arm could interpolate it differently."""
 
 
 def pad_pose_facing(
@@ -125,7 +147,17 @@ class MotionPlanner:
     def plan_approach(
         self, touch: TouchGeometry, joints_rad: FloatArray, obstacles: Obstacles
     ) -> Waypoint:
-        """The slow straight approach from the start to the stand-off."""
+        """The slow straight approach from the start to the stand-off. The start itself must
+        be clear as a transit's end is (every part with the full margin)."""
+        check_pose(
+            touch.pose_world_tcp_start,
+            self.motion.touch_width_m,
+            tool=self.tool,
+            obstacles=obstacles,
+            limits=self.limits,
+            pose_world_base=self.pose_world_base,
+            joints_near_rad=joints_rad,
+        )
         return self.line(
             touch.pose_world_tcp_start,
             touch.pose_world_tcp_standoff,
@@ -134,6 +166,7 @@ class MotionPlanner:
             speed_m_s=self.limits.approach_speed_m_s,
             label="approach",
             exempt_parts=APPROACH_EXEMPT_PARTS,
+            near_parts=APPROACH_NEAR_PARTS,
         )
 
     def plan_retract(
@@ -148,6 +181,7 @@ class MotionPlanner:
             speed_m_s=self.limits.max_tcp_speed_m_s,
             label="retract",
             exempt_parts=APPROACH_EXEMPT_PARTS,
+            near_parts=APPROACH_NEAR_PARTS,
         )
 
     def plan_transit(
@@ -182,62 +216,177 @@ class MotionPlanner:
         goal_world_tcp: FloatArray,
         obstacles: Obstacles,
     ) -> list[Waypoint]:
-        """Up to the safe height, across above the object, down to the goal."""
+        """Up to the safe height, across above the object, down to the goal. When the way down
+        is blocked (a wider part of the object above a side touch), down to a point further back
+        along the approach line and in along it to the goal."""
         top_m = self._estimate_top_m(obstacles)
         safe_z = max(
             pose_world_tcp[2, 3],
             self._flange_height_clearing(pose_world_tcp, top_m),
             self._flange_height_clearing(goal_world_tcp, top_m),
         )
-        lift = pose_world_tcp.copy()
-        lift[2, 3] = safe_z
-        above_goal = goal_world_tcp.copy()
-        above_goal[2, 3] = safe_z
         speed = self.limits.max_tcp_speed_m_s
-        waypoints = []
-        joints = joints_rad
-        start = pose_world_tcp
-        for pose, label in ((lift, "lift"), (above_goal, "across"), (goal_world_tcp, "descend")):
-            if np.allclose(pose, start):
+        waypoints = self._leave_upward(pose_world_tcp, joints_rad, safe_z, obstacles)
+        lift = waypoints[-1].pose_world_tcp if waypoints else pose_world_tcp
+        joints = waypoints[-1].joints_rad if waypoints else joints_rad
+        refusal: SafetyViolation | None = None
+        for back_m in DETOUR_BACK_OFFS_M:
+            # The tool's +x is the approach direction (the pad faces along it).
+            down_to = goal_world_tcp.copy()
+            down_to[:3, 3] -= back_m * goal_world_tcp[:3, 0]
+            above = down_to.copy()
+            above[2, 3] = max(safe_z, down_to[2, 3])
+            try:
+                way = self._turning_line(lift, above, joints, obstacles, label="across")
+                end_joints = way[-1].joints_rad if way else joints
+                for start, end, label in (
+                    (above, down_to, "descend"),
+                    (down_to, goal_world_tcp, "in"),
+                ):
+                    if not np.allclose(start, end):
+                        way.append(
+                            self.line(
+                                start, end, end_joints, obstacles, speed_m_s=speed, label=label
+                            )
+                        )
+                        end_joints = way[-1].joints_rad
+            except SafetyViolation as violation:
+                refusal = refusal or violation
                 continue
-            waypoint = self.line(start, pose, joints, obstacles, speed_m_s=speed, label=label)
-            waypoints.append(waypoint)
-            joints = waypoint.joints_rad
-            start = pose
-        return waypoints
+            return waypoints + way
+        assert refusal is not None
+        raise refusal
+
+    def _leave_upward(
+        self, pose_world_tcp: FloatArray, joints_rad: FloatArray, z_m: float, obstacles: Obstacles
+    ) -> list[Waypoint]:
+        """Straight up to the flange height ``z_m`` or, when something above blocks the way,
+        first further back along the approach line the tool faces (tool -x), then up."""
+        leaving = self._leaving(pose_world_tcp, joints_rad, obstacles)
+        speed = self.limits.max_tcp_speed_m_s
+        refusal: SafetyViolation | None = None
+        for back_m in DETOUR_BACK_OFFS_M:
+            back = pose_world_tcp.copy()
+            back[:3, 3] -= back_m * pose_world_tcp[:3, 0]
+            up = back.copy()
+            up[2, 3] = max(z_m, back[2, 3])
+            waypoints: list[Waypoint] = []
+            joints, start = joints_rad, pose_world_tcp
+            try:
+                for end, label in ((back, "back"), (up, "lift")):
+                    if not np.allclose(start, end):
+                        waypoints.append(
+                            self.line(start, end, joints, leaving, speed_m_s=speed, label=label)
+                        )
+                        joints, start = waypoints[-1].joints_rad, end
+            except SafetyViolation as violation:
+                refusal = refusal or violation
+                continue
+            return waypoints
+        assert refusal is not None
+        raise refusal
+
+    def _turning_line(
+        self,
+        start_world_tcp: FloatArray,
+        end_world_tcp: FloatArray,
+        joints_rad: FloatArray,
+        obstacles: Obstacles,
+        *,
+        label: str,
+    ) -> list[Waypoint]:
+        """A straight TCP line that may turn the tool a lot, as lines of at most
+        ``MAX_LINE_ROTATION_RAD`` each: turning one way round and, if that is refused, the
+        other (e.g. past a wrist singularity one way)."""
+        if np.allclose(start_world_tcp, end_world_tcp):
+            return []
+        start = Rotation.from_matrix(start_world_tcp[:3, :3])
+        turn = Rotation.from_matrix(end_world_tcp[:3, :3]) * start.inv()
+        rotvec = turn.as_rotvec()
+        angle = float(np.linalg.norm(rotvec))
+        ways = [rotvec]
+        if angle > MAX_LINE_ROTATION_RAD:
+            ways.append(rotvec - 2 * np.pi * rotvec / angle)  # the same turn the other way round
+        speed = self.limits.max_tcp_speed_m_s
+        refusal: SafetyViolation | None = None
+        for way in ways:
+            pieces = max(1, int(np.ceil(np.linalg.norm(way) / MAX_LINE_ROTATION_RAD - 1e-9)))
+            waypoints: list[Waypoint] = []
+            joints, pose = joints_rad, start_world_tcp
+            try:
+                for piece in range(1, pieces + 1):
+                    fraction = piece / pieces
+                    rotation = (Rotation.from_rotvec(fraction * way) * start).as_matrix()
+                    position = start_world_tcp[:3, 3] + fraction * (
+                        end_world_tcp[:3, 3] - start_world_tcp[:3, 3]
+                    )
+                    end = end_world_tcp if piece == pieces else make_transform(rotation, position)
+                    waypoints.append(
+                        self.line(pose, end, joints, obstacles, speed_m_s=speed, label=label)
+                    )
+                    joints, pose = waypoints[-1].joints_rad, end
+            except SafetyViolation as violation:
+                refusal = refusal or violation
+                continue
+            return waypoints
+        assert refusal is not None
+        raise refusal
 
     def plan_retreat(
         self,
         pose_world_tcp: FloatArray,
         joints_rad: FloatArray,
-        obstacles: Obstacles,
         *,
         back_to_world_tcp: FloatArray | None = None,
     ) -> list[Waypoint]:
         """Where the arm goes after a fault, an abort or at the end of a session: back to where
         the interrupted motion started (the way it came, known to be clear) or, without one,
-        back along the tool's -x (away from what the pad faces); then up to the safe height."""
+        back along the tool's -x (away from what the pad faces). Then ``plan_lift``."""
         if back_to_world_tcp is None:
             back_to_world_tcp = pose_world_tcp.copy()
             back_to_world_tcp[:3, 3] -= self.motion.approach_distance_m * pose_world_tcp[:3, 0]
-        speed = self.limits.max_tcp_speed_m_s
-        waypoints = []
-        joints = joints_rad
-        back = back_to_world_tcp
-        if not np.allclose(back, pose_world_tcp):
-            # Retracing: the shape estimate may be wrong right here, the table is not.
-            waypoint = self.line(
-                pose_world_tcp, back, joints, Obstacles.none(), speed_m_s=speed, label="retreat"
+        if np.allclose(back_to_world_tcp, pose_world_tcp):
+            return []
+        # Retracing: the shape estimate may be wrong right here, the table is not.
+        return [
+            self.line(
+                pose_world_tcp,
+                back_to_world_tcp,
+                joints_rad,
+                Obstacles.none(),
+                speed_m_s=self.limits.max_tcp_speed_m_s,
+                label="retreat",
             )
-            waypoints.append(waypoint)
-            joints = waypoint.joints_rad
-        up = back.copy()
-        up[2, 3] = max(
-            back[2, 3], self._flange_height_clearing(back, self._estimate_top_m(obstacles))
-        )
-        if not np.allclose(up, back):
-            waypoints.append(self.line(back, up, joints, obstacles, speed_m_s=speed, label="lift"))
-        return waypoints
+        ]
+
+    def plan_lift(
+        self, pose_world_tcp: FloatArray, joints_rad: FloatArray, obstacles: Obstacles
+    ) -> list[Waypoint]:
+        """Up to the safe height above the shape estimate (none when already there), backing
+        out along the approach line first if the way up is blocked."""
+        z_m = self._flange_height_clearing(pose_world_tcp, self._estimate_top_m(obstacles))
+        return self._leave_upward(pose_world_tcp, joints_rad, z_m, obstacles)
+
+    def _leaving(
+        self, pose_world_tcp: FloatArray, joints_rad: FloatArray, obstacles: Obstacles
+    ) -> Obstacles:
+        """The obstacles for a lift from where the arm is. The arm got here without touching
+        anything, but a refined estimate may since have spread where the object may be up to
+        it: a lift from a pose inside that margin keeps the margin from the estimate itself
+        (else the arm could never leave)."""
+        try:
+            check_pose(
+                pose_world_tcp,
+                self.motion.touch_width_m,
+                tool=self.tool,
+                obstacles=obstacles,
+                limits=self.limits,
+                pose_world_base=self.pose_world_base,
+                joints_near_rad=joints_rad,
+            )
+        except SafetyViolation:
+            return Obstacles(obstacles.occupied_points_world)
+        return obstacles
 
     def line(
         self,
@@ -249,52 +398,90 @@ class MotionPlanner:
         speed_m_s: float,
         label: str,
         exempt_parts: tuple[str, ...] = (),
+        near_parts: tuple[str, ...] = (),
     ) -> Waypoint:
         """A checked straight TCP line (slerped orientation, as moveL moves): every pose
-        ``path_check_step_m`` apart passes the safety checks, and the speed is lowered where the
-        joints would otherwise turn faster than ``max_joint_speed_rad_s``. SafetyViolation on
-        the first failing pose, or when the line passes so near a singularity that the TCP
-        would have to crawl."""
+        ``path_check_step_m`` apart passes the safety checks, and the speed is lowered so that
+        no joint turns faster than ``max_joint_speed_rad_s`` (the fastest joint rate is found by
+        bisecting where the joints turn fast). SafetyViolation on the first failing pose, or
+        when the line passes so near a singularity that the TCP would have to crawl."""
         check_speed(speed_m_s, self.limits.max_tcp_speed_m_s)
-        distance = np.linalg.norm(end_world_tcp[:3, 3] - start_world_tcp[:3, 3])
+        distance = float(np.linalg.norm(end_world_tcp[:3, 3] - start_world_tcp[:3, 3]))
         angle = rotation_angle_between(start_world_tcp[:3, :3], end_world_tcp[:3, :3])
         length = max(distance, TOOL_REACH_M * angle)
         steps = max(1, int(np.ceil(length / self.motion.path_check_step_m)))
         rotations = Rotation.from_matrix(np.stack([start_world_tcp[:3, :3], end_world_tcp[:3, :3]]))
         slerp = Slerp([0.0, 1.0], rotations)
-        joints = np.asarray(joints_rad, dtype=float)
-        joint_rad_per_m = 0.0
-        pose = start_world_tcp
-        for fraction in np.linspace(0.0, 1.0, steps + 1)[1:]:
-            pose = make_transform(
+
+        def pose_at(fraction: float) -> FloatArray:
+            return make_transform(
                 slerp(fraction).as_matrix(),
                 start_world_tcp[:3, 3] + fraction * (end_world_tcp[:3, 3] - start_world_tcp[:3, 3]),
             )
-            next_joints = check_pose(
-                pose,
-                self.motion.touch_width_m,
-                tool=self.tool,
-                obstacles=obstacles,
-                limits=self.limits,
-                pose_world_base=self.pose_world_base,
-                joints_near_rad=joints,
-                exempt_parts=exempt_parts,
+
+        joints = np.asarray(joints_rad, dtype=float)
+        joint_rad_per_fraction = 0.0
+        previous = 0.0
+        for fraction in np.linspace(0.0, 1.0, steps + 1)[1:]:
+            try:
+                next_joints = check_pose(
+                    pose_at(fraction),
+                    self.motion.touch_width_m,
+                    tool=self.tool,
+                    obstacles=obstacles,
+                    limits=self.limits,
+                    pose_world_base=self.pose_world_base,
+                    joints_near_rad=joints,
+                    exempt_parts=exempt_parts,
+                    near_parts=near_parts,
+                )
+            except SafetyViolation as violation:
+                raise SafetyViolation(f"{label}: {violation}") from None
+            joint_rad_per_fraction = max(
+                joint_rad_per_fraction,
+                self._peak_joint_rate(pose_at, previous, fraction, joints, next_joints),
             )
-            if length > 0:
-                step_rad = float(np.max(np.abs(next_joints - joints)))
-                joint_rad_per_m = max(joint_rad_per_m, step_rad / (length / steps))
-            joints = next_joints
-        if joint_rad_per_m > 0:
-            speed_m_s = min(speed_m_s, self.limits.max_joint_speed_rad_s / joint_rad_per_m)
+            joints, previous = next_joints, fraction
+        if joint_rad_per_fraction > 0:
+            # The line must last at least (largest joint turn per unit of the line) / (joint
+            # speed limit); at the TCP speed it lasts at least distance / speed. (A pure turn is
+            # timed by the tool's reach instead.)
+            seconds = joint_rad_per_fraction / self.limits.max_joint_speed_rad_s
+            travel = distance if distance >= PURE_TURN_M else TOOL_REACH_M * angle
+            speed_m_s = min(speed_m_s, travel / seconds)
         if speed_m_s < MIN_LINE_SPEED_M_S:
             raise SafetyViolation(
-                f"line to {np.round(end_world_tcp[:3, 3], 3).tolist()} m passes near a "
+                f"{label}: line to {np.round(end_world_tcp[:3, 3], 3).tolist()} m passes near a "
                 "singularity (joints would turn too fast)"
             )
         return Waypoint(end_world_tcp, joints, speed_m_s, label)
 
+    def _peak_joint_rate(
+        self,
+        pose_at: Callable[[float], FloatArray],
+        start: float,
+        end: float,
+        start_joints: FloatArray,
+        end_joints: FloatArray,
+        bisections: int = MAX_BISECTIONS,
+    ) -> float:
+        """The largest joint turn per unit of line fraction between two fractions, bisecting
+        (IK only) while the joints between them differ by more than the resolution."""
+        turn = float(np.max(np.abs(end_joints - start_joints)))
+        if turn <= JOINT_STEP_RESOLUTION_RAD or bisections == 0:
+            return turn / (end - start)
+        middle = (start + end) / 2
+        middle_joints = check_reachable(pose_at(middle), self.pose_world_base, start_joints)
+        left = self._peak_joint_rate(
+            pose_at, start, middle, start_joints, middle_joints, bisections - 1
+        )
+        right = self._peak_joint_rate(
+            pose_at, middle, end, middle_joints, end_joints, bisections - 1
+        )
+        return max(left, right)
+
     def _estimate_top_m(self, obstacles: Obstacles) -> float:
-        points = obstacles.occupied_points_world
+        points = obstacles.possible
         return float(points[:, 2].max()) if len(points) else 0.0
 
     def _flange_height_clearing(self, pose_world_tcp: FloatArray, top_m: float) -> float:

@@ -64,10 +64,10 @@ class SessionRecorder:
 
     # --- timelines ------------------------------------------------------------------------------
 
-    def _now(self) -> None:
+    def _now(self, touch: int | None = None) -> None:
         # set_time is per thread and per call site: set it right before each log, no await
         # in between (the recorder is only used from the event loop thread).
-        self._rec.set_time("touch", sequence=self._touch)
+        self._rec.set_time("touch", sequence=self._touch if touch is None else touch)
         self._rec.set_time("time", timestamp=time.time())
 
     def set_touch(self, touch_index: int) -> None:
@@ -190,8 +190,10 @@ class SessionRecorder:
         if height_map_mm is not None:
             self._rec.log("gelsight/height_mm", rr.DepthImage(height_map_mm, meter=1.0))
 
-    def log_metric(self, name: str, value: float) -> None:
-        self._now()
+    def log_metric(self, name: str, value: float, *, touch: int | None = None) -> None:
+        """A scalar on the ``touch`` timeline (the current touch unless given: a score computed
+        in the background belongs to the estimate it scored)."""
+        self._now(touch)
         self._rec.log(f"metrics/{name}", rr.Scalars(value))
 
     # --- artifacts ------------------------------------------------------------------------------

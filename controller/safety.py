@@ -20,6 +20,9 @@ from drivers.tool import ToolBox, ToolModel
 from drivers.ur5_kinematics import inverse_kinematics
 from models.geometry import invert_transform, transform_points
 
+NEAR_PARTS_CLEARANCE_FRACTION = 0.25
+"""``near_parts`` keep this fraction of ``shape_clearance_m`` from where the object may be."""
+
 
 class SafetyViolation(MotionRejectedError):
     """A planned pose or command breaks a configured limit."""
@@ -28,23 +31,41 @@ class SafetyViolation(MotionRejectedError):
 @dataclass(frozen=True)
 class Obstacles:
     """What the tool must keep clear of, in the world frame: the table top at z = 0 and the
-    current shape estimate as points (occupied voxel centres, metres)."""
+    current shape estimate as points (voxel centres, metres) at two levels of belief:
+    ``occupied_points_world`` (v > 0.5, the estimate itself) and ``possible_points_world`` (a
+    lower probability: where the object may still be, as the estimate can be too small; the
+    occupied points when not given)."""
 
     occupied_points_world: NDArray[np.float64]
+    possible_points_world: NDArray[np.float64] | None = None
 
     @classmethod
     def none(cls) -> Obstacles:
         return cls(np.zeros((0, 3)))
 
+    @property
+    def possible(self) -> NDArray[np.float64]:
+        points = self.possible_points_world
+        return self.occupied_points_world if points is None else points
+
     @cached_property
-    def _tree(self) -> cKDTree:
+    def _occupied_tree(self) -> cKDTree:
         return cKDTree(self.occupied_points_world)
 
-    def near(self, centre_world: NDArray[np.float64], radius_m: float) -> NDArray[np.float64]:
-        """The obstacle points within ``radius_m`` of a point (a cheap pre-filter)."""
-        if len(self.occupied_points_world) == 0:
-            return self.occupied_points_world
-        return self.occupied_points_world[self._tree.query_ball_point(centre_world, radius_m)]
+    @cached_property
+    def _possible_tree(self) -> cKDTree:
+        return cKDTree(self.possible)
+
+    def near(
+        self, centre_world: NDArray[np.float64], radius_m: float, *, possible: bool = False
+    ) -> NDArray[np.float64]:
+        """The occupied (or possible) points within ``radius_m`` of a point (a cheap
+        pre-filter)."""
+        points = self.possible if possible else self.occupied_points_world
+        if len(points) == 0:
+            return points
+        tree = self._possible_tree if possible else self._occupied_tree
+        return points[tree.query_ball_point(centre_world, radius_m)]
 
 
 def check_speed(speed_m_s: float, limit_m_s: float, *, what: str = "TCP speed") -> None:
@@ -90,11 +111,13 @@ def check_clearance(
     limits: LimitsConfig,
     *,
     exempt_parts: Sequence[str] = (),
+    near_parts: Sequence[str] = (),
 ) -> None:
     """Every rigid tool part keeps ``table_clearance_m`` above the table and
-    ``shape_clearance_m`` from the shape estimate. ``exempt_parts`` only need to stay out of
-    the estimate (used for the sensor on the last stretch of an approach, where it must come
-    close to the surface it is about to touch)."""
+    ``shape_clearance_m`` from where the object may be (``Obstacles.possible``), except on the
+    last stretch of an approach, where the sensor must come close to the surface it is about
+    to touch: ``near_parts`` keep half the margin, ``exempt_parts`` (the part carrying the
+    gel) may come up to the estimate itself."""
     for box in tool.rigid_boxes(width_m):
         pose_world_box = pose_world_tcp @ box.pose_tcp_box
         lowest_m = _lowest_point_z(pose_world_box, box)
@@ -103,12 +126,16 @@ def check_clearance(
                 f"{box.name} would be {lowest_m * 1e3:.1f} mm above the table, "
                 f"clearance is {limits.table_clearance_m * 1e3:.0f} mm"
             )
-        clearance = 0.0 if box.name in exempt_parts else limits.shape_clearance_m
+        exempt = box.name in exempt_parts
+        clearance = 0.0 if exempt else limits.shape_clearance_m
+        if box.name in near_parts:
+            clearance = NEAR_PARTS_CLEARANCE_FRACTION * limits.shape_clearance_m
         reach = float(np.linalg.norm(box.half_extents_m)) + clearance
-        nearby = obstacles.near(pose_world_box[:3, 3], reach)
+        nearby = obstacles.near(pose_world_box[:3, 3], reach, possible=not exempt)
         if _box_near_points(pose_world_box, box, nearby, clearance):
+            where = "the shape estimate" if exempt else "where the object may be"
             raise SafetyViolation(
-                f"{box.name} would come within {clearance * 1e3:.0f} mm of the shape estimate"
+                f"{box.name} would come within {clearance * 1e3:.0f} mm of {where}"
             )
 
 
@@ -122,11 +149,20 @@ def check_pose(
     pose_world_base: NDArray[np.float64],
     joints_near_rad: NDArray[np.float64],
     exempt_parts: Sequence[str] = (),
+    near_parts: Sequence[str] = (),
 ) -> NDArray[np.float64]:
     """All pose checks (workspace, reach, clearance); returns the joint solution."""
     check_workspace(pose_world_tcp, limits)
     joints = check_reachable(pose_world_tcp, pose_world_base, joints_near_rad)
-    check_clearance(pose_world_tcp, width_m, tool, obstacles, limits, exempt_parts=exempt_parts)
+    check_clearance(
+        pose_world_tcp,
+        width_m,
+        tool,
+        obstacles,
+        limits,
+        exempt_parts=exempt_parts,
+        near_parts=near_parts,
+    )
     return joints
 
 

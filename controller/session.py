@@ -14,7 +14,7 @@ import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -91,8 +91,24 @@ shape has stopped changing."""
 REJECTED_TARGET_RADIUS_M = 0.01
 """Targets within this distance of one the planner refused are not proposed again."""
 ACCELERATION_M_S2 = 0.5
-APPROACH_STEP_M = 0.001
-"""Arm travel between force readings on an approach: less than the gel's 1.5 mm give."""
+APPROACH_STEP_M = 0.0005
+"""Arm travel between force readings on an approach. On a face tilted to the pad, or an edge or
+corner meeting the gel, the force grows slowly: the gel must show ``approach_contact_force_n``
+before it has given the 1.5 mm that bring the rigid window behind it onto the object."""
+APPROACH_FINE_STEP_M = 0.0001
+APPROACH_FINE_FORCE_FRACTION = 0.25
+"""Once the force reaches this fraction of ``approach_contact_force_n`` the approach goes on in
+``APPROACH_FINE_STEP_M`` steps: a corner pressing the gel shows only ~0.15 N one coarse step
+before the window would reach it (measured on the sim bench, the camera's corners)."""
+POSSIBLE_OCCUPANCY = 0.1
+"""Voxels above this probability are where the object may be: transits, and the tool parts that
+do not lead into a touch, keep their clearance from them. The vision estimate (v > 0.5) is too
+small in places: on the sim bench it misses the object's surface by up to 24 mm (the mug),
+v > 0.1 by at most 9 mm."""
+
+
+SCORES = ("chamfer_mm", "fscore_2mm", "fscore_5mm")
+"""Ground-truth scores of every estimate on the simulated bench (``models.metrics``)."""
 
 
 class SessionFault(RuntimeError):
@@ -101,25 +117,48 @@ class SessionFault(RuntimeError):
 
 @dataclass
 class SessionTimes:
-    """Wall-clock seconds spent computing (perception, planning) and moving (device commands),
-    in total and per touch (from the end of one refinement to the end of the next)."""
+    """Where a session's wall-clock time goes. ``motion_s`` is the time spent awaiting the
+    devices (arm and finger motions, camera and GelSight reads, state queries); ``compute_s``
+    is all the rest of the session's own path: perception, planning, recording, publishing -
+    the time the robot waits for the computer. Work taken off that path (the simulation's
+    ground-truth scores) is not in it. Per touch: from the end of one refinement (or of the
+    reconstruction) to the end of the next refinement. On the simulated bench ``sim_clock``
+    reads the simulation's clock: ``per_touch_sim_s`` is the simulated time the devices took
+    (at real-time factor 1, what a real robot would take; ``motion_s`` also holds the
+    simulator's own computing)."""
 
+    sim_clock: Callable[[], float] | None = None
     compute_s: float = 0.0
     motion_s: float = 0.0
     per_touch_compute_s: list[float] = field(default_factory=list)
     per_touch_motion_s: list[float] = field(default_factory=list)
-    _marks: list[tuple[float, float]] = field(default_factory=list)
+    per_touch_sim_s: list[float] = field(default_factory=list)
+    _marks: list[tuple[float, float, float]] = field(default_factory=list)
 
-    def mark(self) -> None:
-        """Close a touch's accounting (and open the next one)."""
-        if self._marks:
-            compute, motion = self._marks[-1]
-            self.per_touch_compute_s.append(round(self.compute_s - compute, 3))
-            self.per_touch_motion_s.append(round(self.motion_s - motion, 3))
-        self._marks.append((self.compute_s, self.motion_s))
+    def start(self) -> None:
+        self._marks = [(time.perf_counter(), self.motion_s, self._sim_now())]
+
+    def mark(self, *, touch: bool = True) -> None:
+        """Close a stretch of the session's accounting (a touch's when ``touch``) and open the
+        next one."""
+        now, sim_now = time.perf_counter(), self._sim_now()
+        started, motion_before, sim_before = self._marks[-1]
+        motion = self.motion_s - motion_before
+        compute = now - started - motion
+        self.compute_s += compute
+        if touch:
+            self.per_touch_compute_s.append(round(compute, 3))
+            self.per_touch_motion_s.append(round(motion, 3))
+            if self.sim_clock is not None:
+                self.per_touch_sim_s.append(round(sim_now - sim_before, 3))
+        self._marks.append((now, self.motion_s, sim_now))
+
+    def _sim_now(self) -> float:
+        return self.sim_clock() if self.sim_clock is not None else 0.0
 
 
 Publish = Callable[[str, dict[str, Any]], None]
+T = TypeVar("T")
 
 
 class ExplorationSession:
@@ -159,19 +198,21 @@ class ExplorationSession:
         self.touch_count = 0
         self.estimate: ShapeEstimate | None = None
         self.outcomes: list[TouchOutcome] = []
-        self.times = SessionTimes()
+        world = devices.world
+        self.times = SessionTimes(sim_clock=None if world is None else (lambda: world.clock.now_s))
         self.error: str | None = None
         self.metrics: dict[str, list[float]] = {}
         """Ground-truth scores after reconstruct and each refine (simulation only)."""
+        self._scoring: list[asyncio.Task[dict[str, float]]] = []
         self._frame = None
         self._reference: TactileFrame | None = None
         self._target: TouchTarget | None = None
         self._touch: TouchGeometry | None = None
-        self._early_contact = False
         self._rejected: list[np.ndarray] = []
         self._unchanged_touches = 0
         self._move_start_world_tcp: np.ndarray | None = None
-        """Where the arm's current (or last, if it failed) motion started: a known-clear pose."""
+        """Where the arm's current (or last, if it failed) motion started: a pose the arm
+        reached without touching anything (for an approach: the approach start)."""
 
     # --- the loop -------------------------------------------------------------------------------
 
@@ -185,6 +226,7 @@ class ExplorationSession:
             State.TOUCH: self._touch_step,
             State.REFINE: self._refine,
         }
+        self.times.start()
         self._transition(State.CAPTURE)
         while self.state in steps:
             step = asyncio.create_task(steps[self.state](), name=f"{self.session_id}:{self.state}")
@@ -219,9 +261,11 @@ class ExplorationSession:
                 break
             self._transition(next_state)
         if self.state == State.DONE:
+            self.times.mark(touch=False)
             # The arm rests at the last approach start, clear of the object: going up above it
             # is a courtesy, and a refused retreat there is no error.
             await self._make_safe(report_failure=False)
+        await self._collect_scores()
         return self.summary()
 
     def _transition(self, state: State, detail: str = "") -> None:
@@ -245,21 +289,21 @@ class ExplorationSession:
     # --- steps ----------------------------------------------------------------------------------
 
     async def _capture(self) -> State:
-        devices = self.devices
-        start = time.perf_counter()
-        gripper_state = await devices.gripper.state()
+        devices, device = self.devices, self._device
+        gripper_state = await device(devices.gripper.state())
         if abs(gripper_state.width_m - self.config.motion.touch_width_m) > 1e-4:
-            await devices.gripper.move(
-                self.config.motion.touch_width_m,
-                speed_m_s=0.05,
-                force_limit_n=self.config.limits.max_force_n,
-                timeout_s=10.0,
+            await device(
+                devices.gripper.move(
+                    self.config.motion.touch_width_m,
+                    speed_m_s=0.05,
+                    force_limit_n=self.config.limits.max_force_n,
+                    timeout_s=10.0,
+                )
             )
-        self._reference = await devices.tactile.reference()
-        self._frame = await devices.camera.read()
-        self.times.motion_s += time.perf_counter() - start
+        self._reference = await device(devices.tactile.reference())
+        self._frame = await device(devices.camera.read())
         self.recorder.log_camera(self._frame)
-        arm = await devices.arm.state()
+        arm = await device(devices.arm.state())
         pose_world_tcp = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
         self.recorder.log_robot(
             pose_world_tcp, pose_world_tcp @ self.tool.pose_tcp_pad(gripper_state.width_m)
@@ -269,7 +313,7 @@ class ExplorationSession:
     async def _reconstruct(self) -> State:
         self.estimate = await self._compute(self.perception.reconstruct, self._frame, self.request)
         await self._record_shape()
-        self.times.mark()
+        self.times.mark(touch=False)
         return State.SELECT
 
     async def _select(self) -> State:
@@ -279,8 +323,8 @@ class ExplorationSession:
         if self._unchanged_touches >= CONVERGED_AFTER_UNCHANGED_TOUCHES:
             log.info("converged: %d touches changed no voxel", self._unchanged_touches)
             return State.DONE
-        obstacles = Obstacles(self.estimate.occupied_points_world())
-        joints = (await self.devices.arm.state()).joints_rad
+        obstacles = self._obstacles()
+        joints = (await self._device(self.devices.arm.state())).joints_rad
 
         def allowed(target: TouchTarget) -> bool:
             if any(
@@ -306,8 +350,8 @@ class ExplorationSession:
     async def _approach(self) -> State:
         assert self._target is not None and self.estimate is not None
         target = self._target
-        obstacles = Obstacles(self.estimate.occupied_points_world())
-        arm = await self.devices.arm.state()
+        obstacles = self._obstacles()
+        arm = await self._device(self.devices.arm.state())
         pose_world_tcp = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
         touch = self.planner.touch_geometry(target.target_world, target.direction_world)
 
@@ -323,45 +367,45 @@ class ExplorationSession:
             self._rejected.append(target.target_world)
             return State.SELECT
         self._touch = touch
-        start = time.perf_counter()
         for waypoint in waypoints:
             await self._move(waypoint)
-        self._early_contact = await self._move_until_contact(approach)
-        self.times.motion_s += time.perf_counter() - start
+        if await self._move_until_contact(approach):
+            log.info("the pad touched on the approach: the surface is nearer than estimated")
         return State.TOUCH
 
     async def _touch_step(self) -> State:
         assert self._touch is not None and self._target is not None
         assert self._reference is not None
-        devices, limits, motion = self.devices, self.config.limits, self.config.motion
-        start = time.perf_counter()
-        if self._early_contact:
-            gripper = await devices.gripper.state()
-            contact = True
-        else:
-            gripper = await devices.gripper.move(
+        devices, device = self.devices, self._device
+        limits, motion = self.config.limits, self.config.motion
+        # Also after a contact on the approach: that one only stopped the arm at a light force;
+        # the fingers press on to the contact force (and stop where any rigid part would touch).
+        gripper = await device(
+            devices.gripper.move(
                 self.config.gripper.stroke_m,
                 speed_m_s=motion.finger_speed_m_s,
                 force_limit_n=limits.contact_force_n,
                 timeout_s=STEP_TIMEOUT_S[State.TOUCH] / 2,
             )
-            contact = gripper.blocked
+        )
+        contact = gripper.blocked
         check_force_or_fault(gripper.force_n, self.config)
-        tactile = await devices.tactile.read()
-        arm = await devices.arm.state()
+        tactile = await device(devices.tactile.read())
+        arm = await device(devices.arm.state())
         pose_world_tcp = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
         pose_world_pad = pose_world_tcp @ self.tool.pose_tcp_pad(gripper.width_m)
         self.recorder.log_robot(pose_world_tcp, pose_world_pad)
         # Back off: fingers to the approach width, then the arm out along the approach line.
-        await devices.gripper.move(
-            motion.touch_width_m,
-            speed_m_s=0.05,
-            force_limit_n=limits.max_force_n,
-            timeout_s=10.0,
+        await device(
+            devices.gripper.move(
+                motion.touch_width_m,
+                speed_m_s=0.05,
+                force_limit_n=limits.max_force_n,
+                timeout_s=10.0,
+            )
         )
         retract = self.planner.plan_retract(self._touch, arm.joints_rad, Obstacles.none())
         await self._move(retract)
-        self.times.motion_s += time.perf_counter() - start
 
         measurement = TouchMeasurement(
             target=self._target,
@@ -414,38 +458,59 @@ class ExplorationSession:
 
     # --- motion ---------------------------------------------------------------------------------
 
+    def _obstacles(self) -> Obstacles:
+        """The current estimate as obstacles: occupied, and where the object may be."""
+        assert self.estimate is not None
+        return Obstacles(
+            self.estimate.occupied_points_world(),
+            self.estimate.occupied_points_world(POSSIBLE_OCCUPANCY),
+        )
+
     def _joints_at(self, touch: TouchGeometry, joints_near: np.ndarray) -> np.ndarray:
         return check_reachable(touch.pose_world_tcp_start, self.pose_world_base, joints_near)
 
-    async def _move(self, waypoint: Waypoint) -> None:
-        arm = await self.devices.arm.state()
-        self._move_start_world_tcp = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
+    async def _move(self, waypoint: Waypoint, *, new_motion: bool = True) -> None:
+        """Move to a waypoint; ``new_motion=False`` continues a motion (an approach's steps),
+        which a retreat then retraces to its start."""
+        if new_motion:
+            arm = await self._device(self.devices.arm.state())
+            self._move_start_world_tcp = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
         pose_base_tcp = invert_transform(self.pose_world_base) @ waypoint.pose_world_tcp
-        await self.devices.arm.move_linear(
-            matrix_to_ur_pose(pose_base_tcp),
-            speed_m_s=waypoint.speed_m_s,
-            acceleration_m_s2=ACCELERATION_M_S2,
-            timeout_s=STEP_TIMEOUT_S[State.APPROACH],
+        await self._device(
+            self.devices.arm.move_linear(
+                matrix_to_ur_pose(pose_base_tcp),
+                speed_m_s=waypoint.speed_m_s,
+                acceleration_m_s2=ACCELERATION_M_S2,
+                timeout_s=STEP_TIMEOUT_S[State.APPROACH],
+            )
         )
 
     async def _move_until_contact(self, waypoint: Waypoint) -> bool:
         """The slow approach, watching the finger force: the surface may be nearer than the
         estimate said. The line is driven in ``APPROACH_STEP_M`` moves with a force reading
-        after each, so the arm never travels further than the gel can give between checks.
-        Returns True when the pad touched on the way (the arm then stays there)."""
-        arm = await self.devices.arm.state()
+        after each, and in ``APPROACH_FINE_STEP_M`` moves once the gel feels anything, so the
+        arm never travels further than the gel can give between checks. Returns True when
+        the pad touched on the way (the arm then stays there). A retreat from anywhere on the
+        line goes back to its start."""
+        arm = await self._device(self.devices.arm.state())
         start = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
+        self._move_start_world_tcp = start
         end = waypoint.pose_world_tcp
         distance = float(np.linalg.norm(end[:3, 3] - start[:3, 3]))
-        steps = max(1, int(np.ceil(distance / APPROACH_STEP_M)))
-        for index in range(1, steps + 1):
-            pose = end.copy() if index == steps else start.copy()
-            if index < steps:
-                pose[:3, :3] = end[:3, :3]
-                pose[:3, 3] = start[:3, 3] + index / steps * (end[:3, 3] - start[:3, 3])
-            await self._move(Waypoint(pose, waypoint.joints_rad, waypoint.speed_m_s, "approach"))
-            if (await self.devices.gripper.state()).force_n >= self.config.limits.contact_force_n:
+        limit_n = self.config.limits.approach_contact_force_n
+        travelled, step_m = 0.0, APPROACH_STEP_M
+        while travelled < distance - 1e-9:
+            travelled = min(distance, travelled + step_m)
+            pose = end.copy()
+            if travelled < distance:
+                pose[:3, 3] = start[:3, 3] + travelled / distance * (end[:3, 3] - start[:3, 3])
+            step = Waypoint(pose, waypoint.joints_rad, waypoint.speed_m_s, "approach")
+            await self._move(step, new_motion=False)
+            force_n = (await self._device(self.devices.gripper.state())).force_n
+            if force_n >= limit_n:
                 return True
+            if force_n >= APPROACH_FINE_FORCE_FRACTION * limit_n:
+                step_m = APPROACH_FINE_STEP_M
         return False
 
     async def _make_safe(self, *, report_failure: bool = True) -> None:
@@ -474,22 +539,27 @@ class ExplorationSession:
                     timeout_s=10.0,
                 )
             pose_world_tcp = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
-            obstacles = (
-                Obstacles(self.estimate.occupied_points_world())
-                if self.estimate is not None
-                else Obstacles.none()
-            )
-            waypoints = self.planner.plan_retreat(
-                pose_world_tcp, arm.joints_rad, obstacles, back_to_world_tcp=back_to
-            )
-            for waypoint in waypoints:
+            joints = arm.joints_rad
+            for waypoint in self.planner.plan_retreat(
+                pose_world_tcp, joints, back_to_world_tcp=back_to
+            ):
                 await self._move(waypoint)
+                pose_world_tcp, joints = waypoint.pose_world_tcp, waypoint.joints_rad
         except (DeviceError, SafetyViolation) as error:
             if not report_failure:
                 log.warning("stayed at the last approach start: %s", error)
                 return
             log.error("could not retreat to a safe pose: %s", error)
             self.error = (self.error or "") + f" (retreat failed: {error})"
+            return
+        # Back where the motion started, a pose the arm reached without touching anything:
+        # safe. Going up above the object is a courtesy a wrong estimate may refuse.
+        obstacles = self._obstacles() if self.estimate is not None else Obstacles.none()
+        try:
+            for waypoint in self.planner.plan_lift(pose_world_tcp, joints, obstacles):
+                await self._move(waypoint)
+        except (DeviceError, SafetyViolation) as error:
+            log.warning("stayed where the interrupted motion started: %s", error)
 
     async def _fault(self, message: str) -> None:
         self.error = message
@@ -500,11 +570,16 @@ class ExplorationSession:
     # --- helpers --------------------------------------------------------------------------------
 
     async def _compute(self, function: Callable[..., Any], *args: Any) -> Any:
+        """Run perception or planning in a worker thread (the event loop stays responsive)."""
+        return await asyncio.to_thread(function, *args)
+
+    async def _device(self, call: Awaitable[T]) -> T:
+        """Await a device command or query, counting its time as motion (``SessionTimes``)."""
         start = time.perf_counter()
         try:
-            return await asyncio.to_thread(function, *args)
+            return await call
         finally:
-            self.times.compute_s += time.perf_counter() - start
+            self.times.motion_s += time.perf_counter() - start
 
     async def _record_shape(self) -> None:
         assert self.estimate is not None
@@ -514,17 +589,31 @@ class ExplorationSession:
         self.publish_shape(self.estimate)
         world = self.devices.world
         if world is not None:
-            # Only a simulation knows the true shape: score every estimate against it.
-            scores = await asyncio.to_thread(
-                mesh_metrics,
-                self.estimate.probabilities,
-                self.estimate.grid,
-                world.object_mesh_world,
+            # Only a simulation knows the true shape: score every estimate against it, in the
+            # background (it is no work a real robot would wait for); collected at the end.
+            self._scoring.append(
+                asyncio.create_task(
+                    self._score(self.estimate, world.object_mesh_world, self.touch_count)
+                )
             )
-            for name in ("chamfer_mm", "fscore_2mm", "fscore_5mm"):
-                value = float(getattr(scores, name))
+
+    async def _score(self, estimate: ShapeEstimate, mesh: Any, touch: int) -> dict[str, float]:
+        scores = await asyncio.to_thread(mesh_metrics, estimate.probabilities, estimate.grid, mesh)
+        values = {name: float(getattr(scores, name)) for name in SCORES}
+        for name, value in values.items():
+            self.recorder.log_metric(name, value, touch=touch)
+        return values
+
+    async def _collect_scores(self) -> None:
+        """Wait for the background scores and list them in estimate order."""
+        results = await asyncio.gather(*self._scoring, return_exceptions=True)
+        self._scoring.clear()
+        for result in results:
+            if isinstance(result, BaseException):
+                log.error("scoring an estimate failed: %r", result)
+                continue
+            for name, value in result.items():
                 self.metrics.setdefault(name, []).append(round(value, 3))
-                self.recorder.log_metric(name, value)
 
     def finish(self) -> None:
         """Back to idle once the service has saved the session's artifacts."""
@@ -542,6 +631,11 @@ class ExplorationSession:
             "motion_s": round(self.times.motion_s, 3),
             "per_touch_compute_s": self.times.per_touch_compute_s,
             "per_touch_motion_s": self.times.per_touch_motion_s,
+            **(
+                {"per_touch_sim_s": self.times.per_touch_sim_s}
+                if self.times.sim_clock is not None
+                else {}
+            ),
             "metrics": self.metrics,
         }
 

@@ -24,10 +24,12 @@ from drivers.sim.gelsight import gel_pad_spec
 from drivers.sim.gripper import SimWSG50
 from drivers.sim.world import SimWorld
 from drivers.tool import ToolModel
+from drivers.ur5_kinematics import forward_kinematics
 from models.geometry import (
     make_transform,
     matrix_to_ur_pose,
     radial_angle_about_vertical,
+    rotation_angle_between,
     ur_pose_to_matrix,
 )
 from models.tactile_sim import GelSightSimulator
@@ -191,3 +193,94 @@ async def test_planned_touch_runs_on_the_sim_arm_without_protective_stop() -> No
             timeout_s=60,
         )
         pose, joints = world.pose_world_tcp(), world.joints_rad
+
+
+def test_clearance_from_where_the_object_may_be() -> None:
+    """Parts keep the margin from the possible points (v above a low probability), not only
+    from the estimate; on an approach the gel's window may come up to the estimate itself and
+    the sensor's housing and finger keep a quarter of the margin."""
+    limits = LimitsConfig()
+    pose = tool_down_at(0.0, 0.0, 0.4)
+    beside_body = np.array([[0.0, 0.0, 0.4 - 0.005]])
+    check_clearance(pose, 0.08, TOOL, Obstacles(np.zeros((0, 3))), limits)
+    with pytest.raises(SafetyViolation, match=r"gripper_body.*where the object may be"):
+        check_clearance(pose, 0.08, TOOL, Obstacles(np.zeros((0, 3)), beside_body), limits)
+    pad = pose @ TOOL.pose_tcp_pad(0.08)
+    ahead = pad[:3, 3][None] + 0.004 * pad[:3, 2]  # 4 mm in front of the gel
+    possible_ahead = Obstacles(np.zeros((0, 3)), ahead)
+    approach = {
+        "exempt_parts": ("gelsight_window",),
+        "near_parts": ("gelsight_housing", "finger_sensor_side"),
+    }
+    check_clearance(pose, 0.08, TOOL, possible_ahead, limits, **approach)
+    with pytest.raises(SafetyViolation, match=r"gelsight_window.*the shape estimate"):
+        check_clearance(pose, 0.08, TOOL, Obstacles(ahead - 0.006 * pad[:3, 2]), limits, **approach)
+    # 2 mm beside the housing's outer side: inside the near parts' 2.5 mm.
+    housing = next(b for b in TOOL.rigid_boxes(0.08) if b.name == "gelsight_housing")
+    pose_box = pose @ housing.pose_tcp_box
+    side = pose_box[:3, 3] + (housing.half_extents_m[1] + 0.002) * pose_box[:3, 1]
+    with pytest.raises(SafetyViolation, match="gelsight_housing"):
+        check_clearance(
+            pose, 0.08, TOOL, Obstacles(np.zeros((0, 3)), side[None]), limits, **approach
+        )
+
+
+async def test_a_half_turn_across_the_object_runs_on_the_sim_arm() -> None:
+    """From a top touch to a side touch the tool turns 180 degrees: the planner splits the
+    turn (a half-turn has no unique shortest rotation) and finds the joint-rate peak near the
+    wrist singularity between its checked poses, so the arm executes what was checked (the
+    single line planned before ran a wrist joint over 3.14 rad/s on the sim arm)."""
+    joints = np.array([-1.5708, -1.5638286814745541, 1.440842183114267, -1.4478135016230427,
+                       -1.5708, 0.0])  # fmt: skip
+    world = SimWorld(
+        trimesh.creation.box((0.01, 0.01, 0.01)),
+        sim=SimConfig(),
+        arm=ArmConfig(),
+        gripper=GripperConfig(),
+        sensor=SensorConfig(),
+    )
+    world.joints_rad = joints
+    world.pose_base_flange = forward_kinematics(joints)
+    start = world.pose_world_tcp()
+    goal = make_transform(
+        np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]), (-0.185, -0.006, 0.48)
+    )
+    waypoints = planner().plan_detour(start, joints, goal, Obstacles.none())
+    assert [w.label for w in waypoints] == ["across", "across"]
+    arm = SimUR5(world, ArmConfig())
+    await arm.connect()
+    previous = start
+    for waypoint in waypoints:
+        assert rotation_angle_between(previous[:3, :3], waypoint.pose_world_tcp[:3, :3]) <= (
+            np.pi / 2 + 1e-9
+        )
+        await arm.move_linear(
+            matrix_to_ur_pose(np.linalg.inv(POSE_WORLD_BASE) @ waypoint.pose_world_tcp),
+            speed_m_s=waypoint.speed_m_s,
+            acceleration_m_s2=0.5,
+            timeout_s=60,
+        )
+        previous = waypoint.pose_world_tcp
+    np.testing.assert_allclose(world.pose_world_tcp(), goal, atol=1e-6)
+
+
+def test_detour_backs_out_when_the_way_up_is_blocked() -> None:
+    """After a side touch under an overhang the way straight up is blocked: the detour first
+    backs out along the approach line, then lifts."""
+    mesh = trimesh.creation.cylinder(
+        radius=0.04, height=0.1, transform=make_transform(None, (0, 0, 0.05))
+    )
+    plan = planner()
+    touch = plan.touch_geometry((0.0, -0.04, 0.05), (0.0, 1.0, 0.0))
+    start = touch.pose_world_tcp_start
+    joints = check_reachable(start, POSE_WORLD_BASE, HOME)
+    roof = trimesh.creation.box((0.1, 0.1, 0.004))
+    roof.apply_translation((0.0, -0.07, start[2, 3] + 0.06))
+    points = np.concatenate([box_obstacles(mesh).occupied_points_world, roof.sample(2000)])
+    obstacles = Obstacles(points)
+    other = plan.touch_geometry((0.04, 0.0, 0.05), (-1.0, 0.0, 0.0))
+    waypoints = plan.plan_transit(start, joints, other, obstacles)
+    assert [w.label for w in waypoints][:2] == ["back", "lift"]
+    back = waypoints[0].pose_world_tcp
+    np.testing.assert_allclose(back[:3, :3], start[:3, :3], atol=1e-12)
+    assert back[1, 3] < start[1, 3]  # away from the object, along -y

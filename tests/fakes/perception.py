@@ -35,10 +35,11 @@ class CylinderPerception:
         self.reconstruct_calls += 1
         centres = self.grid.voxel_centres_world()
         # 1 cm too large, as a vision estimate may be: touches then carve it (voxels flip).
+        # Outside it the object is unlikely (below the planner's "may be there" level).
         radius = np.max(np.linalg.norm(self.mesh.vertices[:, :2], axis=1)) + 0.01
         height = self.mesh.bounds[1, 2]
         inside = (np.linalg.norm(centres[..., :2], axis=-1) <= radius) & (centres[..., 2] <= height)
-        probabilities = np.where(inside, 0.7, 0.2).astype(np.float32)
+        probabilities = np.where(inside, 0.7, 0.05).astype(np.float32)
         return ShapeEstimate(self.grid, probabilities)
 
     def select(
