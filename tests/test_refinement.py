@@ -69,7 +69,7 @@ def test_balanced_loss_weighs_empty_and_occupied_voxels_equally() -> None:
     expected[occupied] = 2 * (flat_v[occupied] - 1) / len(occupied)
     torch.testing.assert_close(gradient.reshape(-1), expected)
     only_empty = VoxelConstraints.from_voxels(N, [[1, 1, 1]], np.zeros((0, 3), int))
-    assert float(touch_loss(voxels, only_empty, "balanced")) == pytest.approx(
+    assert float(touch_loss(voxels.detach(), only_empty, "balanced")) == pytest.approx(
         float(flat_v[only_empty.empty[0]] ** 2)
     )
     with pytest.raises(ValueError, match="unknown touch loss"):
