@@ -10,7 +10,7 @@ checked at poses ``path_check_step_m`` apart (workspace, reach, joint continuity
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -190,9 +190,14 @@ class MotionPlanner:
         joints_rad: FloatArray,
         touch: TouchGeometry,
         obstacles: Obstacles,
+        *,
+        came_from: Sequence[FloatArray] = (),
     ) -> list[Waypoint]:
         """From the current flange pose to the touch's approach start: straight when the radial
-        angle between here and the target is small and the line is clear, else a detour."""
+        angle between here and the target is small and the line is clear, else a detour.
+        ``came_from`` lists the poses the arm passed through to get here (oldest first): when
+        the estimate, refined since, blocks every way out, the arm goes back along them (it
+        has been there, so only the table is checked) until a detour is possible."""
         angle = radial_angle_about_vertical(
             pose_world_tcp[:3, 3], touch.target_world, self.object_point_world
         )
@@ -207,7 +212,33 @@ class MotionPlanner:
                 ]
             except SafetyViolation:
                 pass  # blocked by the shape or out of reach on the way: go around above
-        return self.plan_detour(pose_world_tcp, joints_rad, goal, obstacles)
+        try:
+            return self.plan_detour(pose_world_tcp, joints_rad, goal, obstacles)
+        except SafetyViolation as violation:
+            refusal = violation
+        retrace: list[Waypoint] = []
+        pose, joints = pose_world_tcp, joints_rad
+        for earlier in reversed(came_from):
+            if not np.allclose(earlier, pose):
+                try:
+                    retrace.append(
+                        self.line(
+                            pose,
+                            earlier,
+                            joints,
+                            Obstacles.none(),
+                            speed_m_s=speed,
+                            label="retrace",
+                        )
+                    )
+                except SafetyViolation:
+                    break  # not the way the arm came after all (reach, speed): stop here
+                pose, joints = earlier, retrace[-1].joints_rad
+            try:
+                return retrace + self.plan_detour(pose, joints, goal, obstacles)
+            except SafetyViolation:
+                continue
+        raise refusal
 
     def plan_detour(
         self,

@@ -1,6 +1,11 @@
 """Session recording: one Rerun recording (logs/<session>.rrd) and a folder of artifacts
 (logs/<session>/) per exploration session. The one module that talks to Rerun.
 
+The viewer layout is one blueprint file, ``logs/touchshape.rbl``, written once per process
+(``rerun logs/touchshape.rbl logs/<session>.rrd``): Rerun 0.41 keeps every blueprint stream it
+makes for the life of the process (rerun-io/rerun#2116), so one per session grew a long-running
+service by ~1.5 MB a session. Each session's recording stream is destroyed when it is closed.
+
 Entity paths mirror the frame tree (``world/kinect``, ``world/ur5/tcp``, ``world/ur5/pad``);
 timelines are ``touch`` (sequence) and ``time`` (wall clock). ``touches.jsonl`` is appended and
 flushed as each touch completes, so a crash loses nothing already measured.
@@ -10,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -17,6 +23,7 @@ from typing import Any
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
+import rerun_bindings
 from numpy.typing import NDArray
 
 from drivers.base import RGBDFrame
@@ -47,6 +54,21 @@ def _blueprint() -> rrb.Blueprint:
     )
 
 
+BLUEPRINT_FILE = "touchshape.rbl"
+_blueprints_written: set[Path] = set()
+_blueprints_lock = threading.Lock()
+
+
+def save_blueprint(logs_dir: Path) -> Path:
+    """The viewer layout in ``logs_dir`` (written once per process and folder)."""
+    path = (logs_dir / BLUEPRINT_FILE).resolve()
+    with _blueprints_lock:
+        if path not in _blueprints_written or not path.exists():
+            _blueprint().save("touchshape", str(path))
+            _blueprints_written.add(path)
+    return path
+
+
 class SessionRecorder:
     """Records one session; create it at session start and ``close()`` it at the end."""
 
@@ -56,9 +78,11 @@ class SessionRecorder:
         self.artifacts_dir = logs_dir / session_id
         self.artifacts_dir.mkdir(parents=True, exist_ok=True)
         self.touches_path = self.artifacts_dir / "touches.jsonl"
-        self._rec = rr.RecordingStream("touchshape", recording_id=session_id)
+        self.blueprint_path = save_blueprint(logs_dir)
+        self._rec: rr.RecordingStream | None = rr.RecordingStream(
+            "touchshape", recording_id=session_id
+        )
         self._rec.save(str(self.rrd_path))
-        self._rec.send_blueprint(_blueprint())
         self._touch = 0
         self._touches_file = self.touches_path.open("a", encoding="utf-8")
 
@@ -67,8 +91,14 @@ class SessionRecorder:
     def _now(self, touch: int | None = None) -> None:
         # set_time is per thread and per call site: set it right before each log, no await
         # in between (the recorder is only used from the event loop thread).
+        if self._rec is None:
+            return
         self._rec.set_time("touch", sequence=self._touch if touch is None else touch)
         self._rec.set_time("time", timestamp=time.time())
+
+    def _log(self, *args: Any, **kwargs: Any) -> None:
+        if self._rec is not None:  # after close() nothing is recorded
+            self._rec.log(*args, **kwargs)
 
     def set_touch(self, touch_index: int) -> None:
         self._touch = touch_index
@@ -82,14 +112,14 @@ class SessionRecorder:
         object_mesh_world: Any | None = None,
     ) -> None:
         """Robot base, voxel grid bounds and (simulation only) the ground-truth object."""
-        self._rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        self._rec.log(
+        self._log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self._log(
             "world/ur5",
             rr.Transform3D(translation=pose_world_base[:3, 3], mat3x3=pose_world_base[:3, :3]),
             static=True,
         )
         corners = grid.voxel_to_world(np.array([[0, 0, 0], [grid.resolution] * 3], dtype=float))
-        self._rec.log(
+        self._log(
             "world/voxel_grid",
             rr.Boxes3D(
                 mins=[corners.min(axis=0)],
@@ -99,7 +129,7 @@ class SessionRecorder:
             static=True,
         )
         if object_mesh_world is not None:
-            self._rec.log(
+            self._log(
                 "world/ground_truth",
                 rr.Mesh3D(
                     vertex_positions=object_mesh_world.vertices,
@@ -115,14 +145,14 @@ class SessionRecorder:
         self._now()
         text = f"{previous or '-'} -> {state}" + (f": {detail}" if detail else "")
         level = "ERROR" if state == "fault" else "INFO"
-        self._rec.log("log", rr.TextLog(text, level=level))
+        self._log("log", rr.TextLog(text, level=level))
 
     def log_camera(self, frame: RGBDFrame) -> None:
         self._now()
         pose = frame.pose_world_camera
         k = frame.intrinsics
-        self._rec.log("world/kinect", rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
-        self._rec.log(
+        self._log("world/kinect", rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
+        self._log(
             "world/kinect",
             rr.Pinhole(
                 focal_length=(k.fx, k.fy),
@@ -131,14 +161,14 @@ class SessionRecorder:
                 height=k.height,
             ),
         )
-        self._rec.log("world/kinect/rgb", rr.Image(frame.colour_rgb))
-        self._rec.log("world/kinect/depth", rr.DepthImage(frame.depth_m, meter=1.0))
+        self._log("world/kinect/rgb", rr.Image(frame.colour_rgb))
+        self._log("world/kinect/depth", rr.DepthImage(frame.depth_m, meter=1.0))
 
     def log_sketches(self, sketches: dict[str, NDArray]) -> None:
         """2.5D sketches (network resolution) by name: depth, normals, silhouette."""
         self._now()
         for name, image in sketches.items():
-            self._rec.log(f"sketches/{name}", rr.Image(np.asarray(image)))
+            self._log(f"sketches/{name}", rr.Image(np.asarray(image)))
 
     def log_shape(self, probabilities: NDArray[np.floating], grid: VoxelGrid) -> None:
         """Occupied voxels (v > 0.5) as points coloured by confidence |v - 0.5|."""
@@ -146,7 +176,7 @@ class SessionRecorder:
         occupied = np.argwhere(probabilities > 0.5)
         points = grid.voxel_to_world(occupied + 0.5)
         colours = _confidence_colours(probabilities[tuple(occupied.T)])
-        self._rec.log(
+        self._log(
             "world/shape",
             rr.Points3D(points, colors=colours, radii=grid.voxel_size_m / 2),
         )
@@ -156,7 +186,7 @@ class SessionRecorder:
     ) -> None:
         self._now()
         for path, pose in (("world/tcp", pose_world_tcp), ("world/pad", pose_world_pad)):
-            self._rec.log(
+            self._log(
                 path,
                 rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]),
                 rr.TransformAxes3D(0.03),
@@ -170,31 +200,31 @@ class SessionRecorder:
         os.fsync(self._touches_file.fileno())
         target = np.asarray(record["target_world"])
         direction = np.asarray(record["direction_world"])
-        self._rec.log(
+        self._log(
             "world/touch/target",
             rr.Arrows3D(origins=[target - 0.05 * direction], vectors=[0.05 * direction]),
         )
         if record.get("contact_point_world") is not None:
-            self._rec.log(
+            self._log(
                 "world/touch/contact",
                 rr.Points3D([record["contact_point_world"]], colors=[(255, 200, 0)], radii=0.003),
             )
         if rays_world is not None and len(rays_world):
-            self._rec.log("world/touch/rays", rr.LineStrips3D(rays_world))
+            self._log("world/touch/rays", rr.LineStrips3D(rays_world))
 
     def log_tactile(
         self, image_bgr: NDArray[np.uint8], height_map_mm: NDArray[np.floating] | None
     ) -> None:
         self._now()
-        self._rec.log("gelsight/image", rr.Image(image_bgr[..., ::-1]))
+        self._log("gelsight/image", rr.Image(image_bgr[..., ::-1]))
         if height_map_mm is not None:
-            self._rec.log("gelsight/height_mm", rr.DepthImage(height_map_mm, meter=1.0))
+            self._log("gelsight/height_mm", rr.DepthImage(height_map_mm, meter=1.0))
 
     def log_metric(self, name: str, value: float, *, touch: int | None = None) -> None:
         """A scalar on the ``touch`` timeline (the current touch unless given: a score computed
         in the background belongs to the estimate it scored)."""
         self._now(touch)
-        self._rec.log(f"metrics/{name}", rr.Scalars(value))
+        self._log(f"metrics/{name}", rr.Scalars(value))
 
     # --- artifacts ------------------------------------------------------------------------------
 
@@ -221,6 +251,13 @@ class SessionRecorder:
         return path
 
     def close(self) -> None:
+        """Flush and close the files; the recorder records nothing after this."""
         self._touches_file.close()
+        if self._rec is None:
+            return
         self._rec.flush()
         rr.disconnect(recording=self._rec)
+        # Drop the stream and have Rerun destroy it: merely disconnected, its native state
+        # (batcher, buffers) would stay for the life of the process (rerun-io/rerun#2116).
+        self._rec = None
+        rerun_bindings.flush_and_cleanup_orphaned_recordings()

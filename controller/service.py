@@ -186,6 +186,7 @@ class TouchshapeService:
     ) -> dict[str, str]:
         artifacts = {
             "recording": str(recorder.rrd_path),
+            "blueprint": str(recorder.blueprint_path),
             "touches": str(recorder.touches_path),
         }
         if session.estimate is not None:

@@ -209,6 +209,8 @@ class ExplorationSession:
         self._target: TouchTarget | None = None
         self._touch: TouchGeometry | None = None
         self._rejected: list[np.ndarray] = []
+        self._came_from: list[np.ndarray] = []
+        """Poses the arm passed through to the current approach start (oldest first)."""
         self._unchanged_touches = 0
         self._move_start_world_tcp: np.ndarray | None = None
         """Where the arm's current (or last, if it failed) motion started: a pose the arm
@@ -356,7 +358,9 @@ class ExplorationSession:
         touch = self.planner.touch_geometry(target.target_world, target.direction_world)
 
         def plan() -> tuple[list[Waypoint], Waypoint]:
-            waypoints = self.planner.plan_transit(pose_world_tcp, arm.joints_rad, touch, obstacles)
+            waypoints = self.planner.plan_transit(
+                pose_world_tcp, arm.joints_rad, touch, obstacles, came_from=self._came_from
+            )
             joints = waypoints[-1].joints_rad if waypoints else arm.joints_rad
             return waypoints, self.planner.plan_approach(touch, joints, obstacles)
 
@@ -367,8 +371,12 @@ class ExplorationSession:
             self._rejected.append(target.target_world)
             return State.SELECT
         self._touch = touch
+        came_from = [pose_world_tcp]
         for waypoint in waypoints:
             await self._move(waypoint)
+            came_from.append(waypoint.pose_world_tcp)
+        # The approach start is left after the touch: the way here is known to be clear.
+        self._came_from = came_from[:-1] if waypoints else self._came_from
         if await self._move_until_contact(approach):
             log.info("the pad touched on the approach: the surface is nearer than estimated")
         return State.TOUCH

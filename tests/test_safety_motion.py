@@ -284,3 +284,30 @@ def test_detour_backs_out_when_the_way_up_is_blocked() -> None:
     back = waypoints[0].pose_world_tcp
     np.testing.assert_allclose(back[:3, :3], start[:3, :3], atol=1e-12)
     assert back[1, 3] < start[1, 3]  # away from the object, along -y
+
+
+def test_transit_retraces_the_way_the_arm_came_when_every_way_out_is_blocked() -> None:
+    """The refined estimate now says the object may be (v above the low level, not 0.5) above
+    the approach start and behind it, where the arm came down: no lift or back-out is clear.
+    The arm came down through there, so it goes back up the same way (only the table
+    checked), then detours."""
+    mesh = trimesh.creation.cylinder(
+        radius=0.04, height=0.1, transform=make_transform(None, (0, 0, 0.05))
+    )
+    plan = planner()
+    touch = plan.touch_geometry((0.0, -0.04, 0.05), (0.0, 1.0, 0.0))
+    start = touch.pose_world_tcp_start
+    joints = check_reachable(start, POSE_WORLD_BASE, HOME)
+    roof = trimesh.creation.box((0.1, 0.25, 0.004))
+    roof.apply_translation((0.0, -0.15, start[2, 3] + 0.06))
+    occupied = box_obstacles(mesh).occupied_points_world
+    obstacles = Obstacles(occupied, np.concatenate([occupied, roof.sample(4000)]))
+    above = start.copy()
+    above[2, 3] += 0.15  # where the arm came down from
+    other = plan.touch_geometry((0.04, 0.0, 0.05), (-1.0, 0.0, 0.0))
+    with pytest.raises(SafetyViolation):
+        plan.plan_transit(start, joints, other, obstacles)
+    waypoints = plan.plan_transit(start, joints, other, obstacles, came_from=[above])
+    assert waypoints[0].label == "retrace"
+    np.testing.assert_allclose(waypoints[0].pose_world_tcp, above)
+    np.testing.assert_allclose(waypoints[-1].pose_world_tcp, other.pose_world_tcp_start)
