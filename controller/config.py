@@ -149,10 +149,12 @@ class ModelsConfig:
     """Adam's step size on the latent (the paper: 1e-3; docs/explore.md has the measured
     reason for 3e-3 together with the anchor)."""
     refine_iterations_per_touch: int = 10
-    refine_loss: Literal["sum", "balanced"] = "balanced"
-    """The touch loss's form (models.refinement.touch_loss): "sum" as the paper writes it, or
+    refine_loss: Literal["sum", "balanced", "threshold"] = "threshold"
+    """The touch loss's form (models.refinement.touch_loss): "sum" as the paper writes it;
     "balanced" (mean over empty + mean over occupied voxels), which keeps the many empty voxels
-    of a touch from shrinking the shape (docs/explore.md)."""
+    of a touch from shrinking the shape; "threshold" (balanced, and a voxel stops pulling once
+    it is on the right side of 0.5), which keeps the few contact voxels from inflating it
+    (docs/explore.md)."""
     refine_anchor_weight: float = 0.03
     """Weight of the latent's squared distance to the vision latent in the refinement loss
     (models.refinement.refine_latent); 0 = the paper's loss alone."""

@@ -760,7 +760,7 @@ def with_refinement(
     config: Config,
     learning_rate: float | None,
     iterations: int | None,
-    loss: Literal["sum", "balanced"] | None = None,
+    loss: Literal["sum", "balanced", "threshold"] | None = None,
 ) -> Config:
     """``config`` with the refinement's learning rate / iterations / loss replaced where given."""
     models = config.models

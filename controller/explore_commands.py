@@ -72,7 +72,7 @@ def add_explore_benchmark_command(bench_commands: argparse._SubParsersAction) ->
     )
     explore.add_argument(
         "--refine-loss",
-        choices=("sum", "balanced"),
+        choices=("sum", "balanced", "threshold"),
         default=None,
         help="touch loss form (config's models.refine_loss)",
     )

@@ -6,7 +6,7 @@ and pitches every 10 degrees) on the estimate with the touches' measurements wri
 random policy; the first candidate the motion planner accepts. interpret: GelSight height map ->
 contact points -> voxel constraints along every ray of the pad (or the emptied sweep of a miss
 or a force stop without imprint). refine: the latent updated by the touch loss over all touches
-so far (balanced, anchored to the vision latent: ``[models]`` config and docs/explore.md), the
+so far (threshold form, anchored to the vision latent: ``[models]`` config and docs/explore.md), the
 measurements then written in; or the Direct Edit baseline on the vision estimate.
 """
 
@@ -31,6 +31,7 @@ from controller.perception import (
 from drivers.base import RGBDFrame
 from drivers.factory import Devices
 from models.geometry import make_transform
+from models.networks import LATENT_DIM
 from models.policy import (
     above_table_filter,
     all_of,
@@ -117,6 +118,17 @@ class LearnedPerception:
                 )
                 self._priors[name].check_grid(self.grid)
             return self._priors[name]
+
+    def warm_up(self, prior_name: str) -> None:
+        """Run one refinement step on a dummy touch: the first ``torch.optim.Adam`` of a process
+        imports ``torch._dynamo`` (~1.3 s here), which would otherwise land on the first touch."""
+        prior = self.prior(prior_name)
+        resolution = self.grid.resolution
+        dummy = VoxelConstraints.from_voxels(resolution, [(0, 0, 0)], np.zeros((0, 3)))
+        latent = torch.zeros(LATENT_DIM, device=prior.device)
+        refine_latent(
+            prior.decode, latent, dummy, iterations=1, loss=self.config.models.refine_loss
+        )
 
     # --- Perception -----------------------------------------------------------------------------
 
@@ -286,5 +298,7 @@ def make_perception(config: Config, devices: Devices) -> LearnedPerception:
         calibration=load_calibration(config),
         seed=config.sim.seed,
     )
-    perception.prior(config.models.prior)  # fail at start-up, not mid-session, on bad weights
+    perception.warm_up(
+        config.models.prior
+    )  # also fails at start-up, not mid-session, on bad weights
     return perception

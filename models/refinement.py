@@ -44,7 +44,7 @@ def decode_volume(decode: Decode, latent: Tensor) -> Tensor:
     return voxels
 
 
-TouchLossKind = Literal["sum", "balanced"]
+TouchLossKind = Literal["sum", "balanced", "threshold"]
 
 
 def touch_loss(
@@ -56,21 +56,30 @@ def touch_loss(
     mean over the empty voxels plus the mean over the occupied ones. A touch proves ~10 voxels
     empty in front of every contact voxel, so in the sum the cheapest way down is to empty the
     shape: the latent shrinks or thins it instead of moving its surface to the contacts.
+    ``"threshold"``: balanced, but a voxel stops pulling once it is on the right side of the
+    surface (v <= 0.5 for empty, v >= 0.5 for occupied): max(0, v - 0.5)^2 and
+    max(0, 0.5 - v)^2. The prior cannot raise a few contact voxels to 1 without growing the
+    whole shape around them (the decoder couples neighbouring voxels), so pulling them past the
+    surface only inflates the shape (docs/explore.md).
     """
     if voxels.shape != (constraints.resolution,) * 3:
         raise ValueError(
             f"volume {tuple(voxels.shape)} does not match constraints at {constraints.resolution}^3"
         )
     flat = voxels.reshape(-1)
-    empty = flat[torch.from_numpy(constraints.empty).to(voxels.device)] ** 2
-    occupied = (1.0 - flat[torch.from_numpy(constraints.occupied).to(voxels.device)]) ** 2
+    empty_v = flat[torch.from_numpy(constraints.empty).to(voxels.device)]
+    occupied_v = flat[torch.from_numpy(constraints.occupied).to(voxels.device)]
+    if kind == "threshold":
+        empty, occupied = torch.relu(empty_v - 0.5) ** 2, torch.relu(0.5 - occupied_v) ** 2
+    else:
+        empty, occupied = empty_v**2, (1.0 - occupied_v) ** 2
     if kind == "sum":
         return empty.sum() + occupied.sum()
-    if kind == "balanced":
+    if kind in ("balanced", "threshold"):
         return sum(
             (terms.mean() for terms in (empty, occupied) if terms.numel()), flat.new_zeros(())
         )
-    raise ValueError(f"unknown touch loss {kind!r}; expected 'sum' or 'balanced'")
+    raise ValueError(f"unknown touch loss {kind!r}; expected 'sum', 'balanced' or 'threshold'")
 
 
 @dataclass(frozen=True)

@@ -76,6 +76,30 @@ def test_balanced_loss_weighs_empty_and_occupied_voxels_equally() -> None:
         touch_loss(voxels, constraints, "mean")  # type: ignore[arg-type]
 
 
+def test_threshold_loss_stops_pulling_at_the_surface() -> None:
+    """Empty voxels pull only while v > 0.5, occupied ones only while v < 0.5, each kind
+    averaged: gradient 2 (v - 0.5) / n_empty and -2 (0.5 - v) / n_occupied, else 0."""
+    generator = torch.Generator().manual_seed(4)
+    voxels = torch.rand(N, N, N, generator=generator, dtype=torch.float64, requires_grad=True)
+    constraints = _constraints()
+    loss = touch_loss(voxels, constraints, "threshold")
+    (gradient,) = torch.autograd.grad(loss, voxels)
+    flat_v = voxels.detach().reshape(-1)
+    empty, occupied = constraints.empty, constraints.occupied
+    over = (flat_v[empty] - 0.5).clamp(min=0)
+    under = (0.5 - flat_v[occupied]).clamp(min=0)
+    assert float(loss.detach()) == pytest.approx(float((over**2).mean() + (under**2).mean()))
+    expected = torch.zeros(N**3, dtype=torch.float64)
+    expected[empty] = 2 * over / len(empty)
+    expected[occupied] = -2 * under / len(occupied)
+    torch.testing.assert_close(gradient.reshape(-1), expected)
+    assert (over == 0).any() and (over > 0).any()  # both sides of the threshold are exercised
+    satisfied = torch.zeros(N, N, N, dtype=torch.float64).reshape(-1)
+    satisfied[occupied] = 0.6
+    satisfied[empty] = 0.4
+    assert float(touch_loss(satisfied.reshape(N, N, N), constraints, "threshold")) == 0.0
+
+
 def test_loss_rejects_a_volume_of_another_size() -> None:
     with pytest.raises(ValueError):
         touch_loss(torch.zeros(4, 4, 4), _constraints())
