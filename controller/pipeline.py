@@ -6,8 +6,9 @@ and pitches every 10 degrees) on the estimate with the touches' measurements wri
 random policy; the first candidate the motion planner accepts. interpret: GelSight height map ->
 contact points -> voxel constraints along every ray of the pad (or the emptied sweep of a miss
 or a force stop without imprint). refine: the latent updated by the touch loss over all touches
-so far (threshold form, anchored to the vision latent: ``[models]`` config and docs/explore.md), the
-measurements then written in; or the Direct Edit baseline on the vision estimate.
+so far (threshold form, anchored to the vision latent: ``[models]`` config and
+docs/explore.md), the measurements then written in; or the Direct Edit baseline on the vision
+estimate.
 """
 
 from __future__ import annotations
@@ -298,7 +299,6 @@ def make_perception(config: Config, devices: Devices) -> LearnedPerception:
         calibration=load_calibration(config),
         seed=config.sim.seed,
     )
-    perception.warm_up(
-        config.models.prior
-    )  # also fails at start-up, not mid-session, on bad weights
+    # Loads the prior too: bad weights fail at start-up, not mid-session.
+    perception.warm_up(config.models.prior)
     return perception
