@@ -73,7 +73,7 @@ from models.geometry import invert_transform, make_transform, rotation_about_axi
 from models.metrics import mesh_metrics, voxel_iou
 from models.policy import oracle_select
 from models.prior import ShapePrior
-from models.refinement import touch_loss
+from models.refinement import TouchLossKind, touch_loss
 from models.shapes import fits_extent, load_mesh_file
 from models.tactile_calibration import GelSightCalibration
 from models.tactile_sim import GelSightSimulator
@@ -760,7 +760,7 @@ def with_refinement(
     config: Config,
     learning_rate: float | None,
     iterations: int | None,
-    loss: Literal["sum", "balanced", "threshold"] | None = None,
+    loss: TouchLossKind | None = None,
 ) -> Config:
     """``config`` with the refinement's learning rate / iterations / loss replaced where given."""
     models = config.models
