@@ -292,7 +292,7 @@ def _finite(value: float) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
-class _ObjectRun:
+class ObjectRun:
     """What every method shares on one object: the bench, the vision estimate, the truth."""
 
     def __init__(
@@ -440,7 +440,7 @@ class _TimedCheck:
             self.seconds += time.perf_counter() - start
 
 
-def _explore(run: _ObjectRun, method: str, run_index: int, tick: Callable[[], None]) -> dict:
+def _explore(run: ObjectRun, method: str, run_index: int, tick: Callable[[], None]) -> dict:
     """One method's curves on one object (one seeded run)."""
     settings = run.settings
     policy, update = METHODS[method]
@@ -635,7 +635,7 @@ def _object_row(
     tick: Callable[[], None] = lambda: None,
 ) -> tuple[dict, Any]:
     """One object's JSON row and its vision latent (``tick`` after every touch)."""
-    run = _ObjectRun(config, calibration, prior, obj, settings)
+    run = ObjectRun(config, calibration, prior, obj, settings)
     try:
         methods = {}
         for method in settings.methods:

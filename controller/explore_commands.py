@@ -1,12 +1,19 @@
-"""CLI command of the exploration benchmark: `bench explore` (issue 5, items 5 and 6)."""
+"""CLI commands of the exploration benchmark: `bench explore` (issue 5, items 5 and 6) and
+`bench explore-bounds` (how far touches can lower the error at all)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from controller.config import load_config
 from controller.output import print_json
+
+if TYPE_CHECKING:
+    from controller.config import Config
+    from models.evaluation import EvalObject
+    from models.prior import ShapePrior
 
 METHODS = "active-prior,random-prior,active-direct,oracle-prior"
 """All methods, the default (``controller.explore_benchmark.METHODS`` defines them)."""
@@ -17,27 +24,24 @@ oracle-prior --random-runs 3 --oracle-candidates 4 --json logs/bench_explore.jso
   touchshape bench explore --objects my.obj --up-axis y --touches 5 --methods active-prior \
 --json logs/mine.json
 """
+BOUNDS_EPILOG = """example:
+  touchshape bench explore-bounds --touches 10 30 --workers 2 --json logs/bench_explore_bounds.json
+"""
 
 
-def add_explore_benchmark_command(bench_commands: argparse._SubParsersAction) -> None:
-    """Add `bench explore`."""
+def _object_arguments(parser: argparse.ArgumentParser) -> None:
+    """--config and the objects: held-out categories or mesh files."""
     from models.shapes import CATEGORIES
 
-    explore = bench_commands.add_parser(
-        "explore",
-        help="shape error vs number of touches per method on the simulated bench (JSON, plot)",
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    explore.add_argument("--config", type=Path, default=None, help="TOML config (default: sim)")
-    explore.add_argument(
+    parser.add_argument("--config", type=Path, default=None, help="TOML config (default: sim)")
+    parser.add_argument(
         "--objects",
         nargs="+",
         type=Path,
         default=None,
         help="mesh files (default: 14 held-out procedural objects, one per category)",
     )
-    explore.add_argument(
+    parser.add_argument(
         "--categories",
         nargs="+",
         default=list(CATEGORIES),
@@ -45,10 +49,39 @@ def add_explore_benchmark_command(bench_commands: argparse._SubParsersAction) ->
         metavar="NAME",
         help="held-out procedural categories without --objects (default: the 14)",
     )
-    explore.add_argument("--up-axis", default="z", help="up axis of the mesh files (y: ShapeNet)")
-    explore.add_argument(
+    parser.add_argument("--up-axis", default="z", help="up axis of the mesh files (y: ShapeNet)")
+    parser.add_argument(
         "--fit-size", type=float, default=None, help="scale mesh files to this extent, metres"
     )
+
+
+def _objects(args: argparse.Namespace) -> list[EvalObject]:
+    from controller.explore_benchmark import file_objects
+    from models.evaluation import held_out_objects
+
+    if args.objects:
+        return file_objects(args.objects, up_axis=args.up_axis, fit_size_m=args.fit_size)
+    return held_out_objects(args.categories, 1)
+
+
+def _load_prior(config: Config, name: str) -> ShapePrior:
+    from models.prior import ShapePrior
+
+    models = config.models
+    return ShapePrior.load(
+        name, preset=models.preset, weights_dir=models.weights_dir or None, device=models.device
+    )
+
+
+def add_explore_benchmark_command(bench_commands: argparse._SubParsersAction) -> None:
+    """Add `bench explore` and `bench explore-bounds`."""
+    explore = bench_commands.add_parser(
+        "explore",
+        help="shape error vs number of touches per method on the simulated bench (JSON, plot)",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    _object_arguments(explore)
     explore.add_argument("--touches", type=int, default=10, help="touches per method")
     explore.add_argument(
         "--methods",
@@ -88,20 +121,35 @@ def add_explore_benchmark_command(bench_commands: argparse._SubParsersAction) ->
     explore.add_argument("--plot", type=Path, default=None, help="Chamfer vs touches PNG")
     explore.set_defaults(handler=bench_explore)
 
+    bounds = bench_commands.add_parser(
+        "explore-bounds",
+        help="how far touches can lower the Chamfer distance: floor, latent fit, ideal touches",
+        epilog=BOUNDS_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    _object_arguments(bounds)
+    bounds.add_argument(
+        "--touches", type=int, nargs="+", default=[10, 30], help="ideal touch counts reported"
+    )
+    bounds.add_argument("--fit-steps", type=int, default=300, help="Adam steps of the latent fit")
+    bounds.add_argument("--prior", default=None, help="prior name (default: the config's)")
+    bounds.add_argument("--seed", type=int, default=0)
+    bounds.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    bounds.add_argument("--workers", type=int, default=1, help="objects run in this many processes")
+    bounds.add_argument("--json", type=Path, default=None, help="also write the JSON here")
+    bounds.set_defaults(handler=bench_explore_bounds)
+
 
 def bench_explore(args: argparse.Namespace) -> int:
     import torch
 
     from controller.explore_benchmark import (
         ExploreSettings,
-        file_objects,
         plot_curves,
         run_explore_benchmark,
         with_refinement,
     )
     from controller.pipeline import load_calibration
-    from models.evaluation import held_out_objects
-    from models.prior import ShapePrior
 
     torch.set_num_threads(args.threads)
     config = with_refinement(
@@ -118,26 +166,39 @@ def bench_explore(args: argparse.Namespace) -> int:
         seed=args.seed,
         timing_resolutions=() if args.no_timing else (64, 128),
     )
-    if args.objects:
-        objects = file_objects(args.objects, up_axis=args.up_axis, fit_size_m=args.fit_size)
-    else:
-        objects = held_out_objects(args.categories, 1)
-    models = config.models
-    prior = ShapePrior.load(
-        prior_name,
-        preset=models.preset,
-        weights_dir=models.weights_dir or None,
-        device=models.device,
-    )
     result = run_explore_benchmark(
         config,
-        objects,
+        _objects(args),
         settings,
-        prior=prior,
+        prior=_load_prior(config, prior_name),
         calibration=load_calibration(config),
         workers=args.workers,
     )
     print_json(result, args.json, shown=result["summary"])
     if args.plot is not None:
         plot_curves(result, args.plot)
+    return 0
+
+
+def bench_explore_bounds(args: argparse.Namespace) -> int:
+    import torch
+
+    from controller.explore_bounds import BoundsSettings, run_bounds
+    from controller.pipeline import load_calibration
+
+    torch.set_num_threads(args.threads)
+    config = load_config(args.config)
+    prior_name = args.prior or config.models.prior
+    settings = BoundsSettings(
+        touch_counts=tuple(args.touches), fit_steps=args.fit_steps, prior=prior_name, seed=args.seed
+    )
+    result = run_bounds(
+        config,
+        _objects(args),
+        settings,
+        prior=_load_prior(config, prior_name),
+        calibration=load_calibration(config),
+        workers=args.workers,
+    )
+    print_json(result, args.json, shown=result["summary"])
     return 0

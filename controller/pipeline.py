@@ -237,7 +237,12 @@ class LearnedPerception:
     def refine(
         self, estimate: ShapeEstimate, outcomes: list[TouchOutcome], request: ExploreRequest
     ) -> ShapeEstimate:
-        constraints = self._constraints(outcomes)
+        return self.refine_with(estimate, self._constraints(outcomes), request)
+
+    def refine_with(
+        self, estimate: ShapeEstimate, constraints: VoxelConstraints, request: ExploreRequest
+    ) -> ShapeEstimate:
+        """:meth:`refine` from the voxel constraints of all touches so far (however measured)."""
         if request.update == "direct" or estimate.latent is None:
             probabilities = direct_edit(estimate.vision_probabilities, constraints)
             return replace(estimate, probabilities=probabilities)

@@ -314,7 +314,9 @@ def touch_constraints(
     the object, and the voxel holding a surface point has its centre outside about half the
     time; a point sqrt(3)/2 voxel deep lies in a voxel whose centre is behind a surface facing
     the ray.
-    Voxels between stay unconstrained. Free rays: all crossed voxels are empty.
+    Voxels between stay unconstrained. Free rays: crossed voxels whose centres lie in front of
+    the ray's end are empty (the pad stopped there, or the stroke ended: what lies beyond is
+    unknown).
     Rays whose end points fall in the same ``ray_spacing_voxels`` cell are traversed once.
     """
     starts = grid.world_to_voxel(touch.ray_starts_world)
@@ -333,10 +335,11 @@ def touch_constraints(
     inner_voxel = np.floor(ends[hit] + occupied_depth_voxels * direction_voxel).astype(np.int64)
     inside = np.all((inner_voxel >= 0) & (inner_voxel < resolution), axis=1)
     occupied = inner_voxel[inside]
-    # Before a contact, a crossed voxel is empty only if its centre is in front of the contact
-    # point: an oblique ray also clips voxels whose centres lie behind the surface.
-    behind_contact = hit[ray] & (((voxels + 0.5) - ends[ray]) @ direction_voxel >= 0)
-    return VoxelConstraints.from_voxels(resolution, voxels[~behind_contact], occupied)
+    # A crossed voxel is empty only if its centre is in front of the ray's end: the last voxel
+    # of a ray (and, for an oblique ray, others) can have its centre beyond it, where a stop
+    # proves nothing (a thin part under a pad stopped by force had 10 voxels wrongly emptied).
+    beyond_end = ((voxels + 0.5) - ends[ray]) @ direction_voxel >= 0
+    return VoxelConstraints.from_voxels(resolution, voxels[~beyond_end], occupied)
 
 
 def constraints_from_touches(

@@ -216,6 +216,19 @@ def test_miss_empties_the_swept_volume_and_free_rays_do_too() -> None:
     np.testing.assert_array_equal(touch_constraints(contact, grid).empty, constraints.empty)
 
 
+def test_a_stopped_sweep_empties_only_voxels_whose_centres_it_passed() -> None:
+    grid = _wall_grid()
+    direction = np.array([0.0, 0.0, -1.0])
+    start_pose = make_transform(frame_from_z_axis(direction), [0.0, 0.0, 0.2])
+    starts = pad_grid_world(start_pose, (0.019, 0.014), 0.002)
+    for stop_z, lowest_empty_layer in ((0.053, 5), (0.057, 6)):
+        # Layer 5 spans z 0.05-0.06 with its centres at 0.055: a stop above them proves nothing
+        # about them (a thin part may fill them).
+        stopped = TouchResult.from_miss(starts, starts * [1, 1, 0] + [0, 0, stop_z])
+        empty = touch_constraints(stopped, grid).empty_ijk()
+        assert empty[:, 2].min() == lowest_empty_layer
+
+
 def test_occupied_wins_when_merging() -> None:
     a = VoxelConstraints.from_voxels(8, empty_ijk=[[1, 1, 1], [2, 2, 2]], occupied_ijk=[[3, 3, 3]])
     b = VoxelConstraints.from_voxels(8, empty_ijk=[[3, 3, 3]], occupied_ijk=[[2, 2, 2]])
