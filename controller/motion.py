@@ -10,8 +10,9 @@ checked at poses ``path_check_step_m`` apart (workspace, reach, joint continuity
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -256,37 +257,22 @@ class MotionPlanner:
             self._flange_height_clearing(pose_world_tcp, top_m),
             self._flange_height_clearing(goal_world_tcp, top_m),
         )
-        speed = self.limits.max_tcp_speed_m_s
         waypoints = self._leave_upward(pose_world_tcp, joints_rad, safe_z, obstacles)
         lift = waypoints[-1].pose_world_tcp if waypoints else pose_world_tcp
         joints = waypoints[-1].joints_rad if waypoints else joints_rad
-        refusal: SafetyViolation | None = None
-        for back_m in DETOUR_BACK_OFFS_M:
+
+        def via(back_m: float) -> list[Waypoint]:
             # The tool's +x is the approach direction (the pad faces along it).
             down_to = goal_world_tcp.copy()
             down_to[:3, 3] -= back_m * goal_world_tcp[:3, 0]
             above = down_to.copy()
             above[2, 3] = max(safe_z, down_to[2, 3])
-            try:
-                way = self._turning_line(lift, above, joints, obstacles, label="across")
-                end_joints = way[-1].joints_rad if way else joints
-                for start, end, label in (
-                    (above, down_to, "descend"),
-                    (down_to, goal_world_tcp, "in"),
-                ):
-                    if not np.allclose(start, end):
-                        way.append(
-                            self.line(
-                                start, end, end_joints, obstacles, speed_m_s=speed, label=label
-                            )
-                        )
-                        end_joints = way[-1].joints_rad
-            except SafetyViolation as violation:
-                refusal = refusal or violation
-                continue
-            return waypoints + way
-        assert refusal is not None
-        raise refusal
+            way = self._turning_line(lift, above, joints, obstacles, label="across")
+            end_joints = way[-1].joints_rad if way else joints
+            stops = [(down_to, "descend"), (goal_world_tcp, "in")]
+            return way + self._lines(above, end_joints, stops, obstacles)
+
+        return waypoints + _first_allowed(partial(via, b) for b in DETOUR_BACK_OFFS_M)
 
     def _leave_upward(
         self, pose_world_tcp: FloatArray, joints_rad: FloatArray, z_m: float, obstacles: Obstacles
@@ -294,28 +280,15 @@ class MotionPlanner:
         """Straight up to the flange height ``z_m`` or, when something above blocks the way,
         first further back along the approach line the tool faces (tool -x), then up."""
         leaving = self._leaving(pose_world_tcp, joints_rad, obstacles)
-        speed = self.limits.max_tcp_speed_m_s
-        refusal: SafetyViolation | None = None
-        for back_m in DETOUR_BACK_OFFS_M:
+
+        def via(back_m: float) -> list[Waypoint]:
             back = pose_world_tcp.copy()
             back[:3, 3] -= back_m * pose_world_tcp[:3, 0]
             up = back.copy()
             up[2, 3] = max(z_m, back[2, 3])
-            waypoints: list[Waypoint] = []
-            joints, start = joints_rad, pose_world_tcp
-            try:
-                for end, label in ((back, "back"), (up, "lift")):
-                    if not np.allclose(start, end):
-                        waypoints.append(
-                            self.line(start, end, joints, leaving, speed_m_s=speed, label=label)
-                        )
-                        joints, start = waypoints[-1].joints_rad, end
-            except SafetyViolation as violation:
-                refusal = refusal or violation
-                continue
-            return waypoints
-        assert refusal is not None
-        raise refusal
+            return self._lines(pose_world_tcp, joints_rad, [(back, "back"), (up, "lift")], leaving)
+
+        return _first_allowed(partial(via, b) for b in DETOUR_BACK_OFFS_M)
 
     def _turning_line(
         self,
@@ -338,30 +311,41 @@ class MotionPlanner:
         ways = [rotvec]
         if angle > MAX_LINE_ROTATION_RAD:
             ways.append(rotvec - 2 * np.pi * rotvec / angle)  # the same turn the other way round
-        speed = self.limits.max_tcp_speed_m_s
-        refusal: SafetyViolation | None = None
-        for way in ways:
+
+        def turning(way: FloatArray) -> list[Waypoint]:
             pieces = max(1, int(np.ceil(np.linalg.norm(way) / MAX_LINE_ROTATION_RAD - 1e-9)))
-            waypoints: list[Waypoint] = []
-            joints, pose = joints_rad, start_world_tcp
-            try:
-                for piece in range(1, pieces + 1):
-                    fraction = piece / pieces
-                    rotation = (Rotation.from_rotvec(fraction * way) * start).as_matrix()
-                    position = start_world_tcp[:3, 3] + fraction * (
-                        end_world_tcp[:3, 3] - start_world_tcp[:3, 3]
-                    )
-                    end = end_world_tcp if piece == pieces else make_transform(rotation, position)
-                    waypoints.append(
-                        self.line(pose, end, joints, obstacles, speed_m_s=speed, label=label)
-                    )
-                    joints, pose = waypoints[-1].joints_rad, end
-            except SafetyViolation as violation:
-                refusal = refusal or violation
-                continue
-            return waypoints
-        assert refusal is not None
-        raise refusal
+            stops = []
+            for piece in range(1, pieces + 1):
+                fraction = piece / pieces
+                rotation = (Rotation.from_rotvec(fraction * way) * start).as_matrix()
+                position = start_world_tcp[:3, 3] + fraction * (
+                    end_world_tcp[:3, 3] - start_world_tcp[:3, 3]
+                )
+                end = end_world_tcp if piece == pieces else make_transform(rotation, position)
+                stops.append((end, label))
+            return self._lines(start_world_tcp, joints_rad, stops, obstacles)
+
+        return _first_allowed(partial(turning, way) for way in ways)
+
+    def _lines(
+        self,
+        start_world_tcp: FloatArray,
+        joints_rad: FloatArray,
+        stops: Sequence[tuple[FloatArray, str]],
+        obstacles: Obstacles,
+    ) -> list[Waypoint]:
+        """Checked straight lines at the TCP speed limit from the start through each
+        (pose, label) stop in turn; a stop where the arm already is adds none."""
+        waypoints: list[Waypoint] = []
+        pose, joints = start_world_tcp, joints_rad
+        for end, label in stops:
+            if not np.allclose(pose, end):
+                speed = self.limits.max_tcp_speed_m_s
+                waypoints.append(
+                    self.line(pose, end, joints, obstacles, speed_m_s=speed, label=label)
+                )
+                pose, joints = end, waypoints[-1].joints_rad
+        return waypoints
 
     def plan_retreat(
         self,
@@ -525,3 +509,17 @@ class MotionPlanner:
             for box in self.tool.rigid_boxes(self.motion.touch_width_m)
         )
         return top_m + self.motion.safe_height_margin_m - lowest_below_flange
+
+
+def _first_allowed(candidates: Iterable[Callable[[], list[Waypoint]]]) -> list[Waypoint]:
+    """The first candidate path the safety checks accept, tried in order; when all are
+    refused, the first refusal (the preferred path's reason)."""
+    refusal: SafetyViolation | None = None
+    for plan in candidates:
+        try:
+            return plan()
+        except SafetyViolation as violation:
+            refusal = refusal or violation
+    if refusal is None:
+        raise ValueError("no candidate paths to try")
+    raise refusal
