@@ -338,9 +338,9 @@ class MotionPlanner:
         (pose, label) stop in turn; a stop where the arm already is adds none."""
         waypoints: list[Waypoint] = []
         pose, joints = start_world_tcp, joints_rad
+        speed = self.limits.max_tcp_speed_m_s
         for end, label in stops:
             if not np.allclose(pose, end):
-                speed = self.limits.max_tcp_speed_m_s
                 waypoints.append(
                     self.line(pose, end, joints, obstacles, speed_m_s=speed, label=label)
                 )
