@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -65,12 +66,10 @@ def _objects(args: argparse.Namespace) -> list[EvalObject]:
 
 
 def _load_prior(config: Config, name: str) -> ShapePrior:
+    """The config's ``[models]`` prior, or the one named instead."""
     from models.prior import ShapePrior
 
-    models = config.models
-    return ShapePrior.load(
-        name, preset=models.preset, weights_dir=models.weights_dir or None, device=models.device
-    )
+    return ShapePrior.from_config(replace(config.models, prior=name))
 
 
 def add_explore_benchmark_command(bench_commands: argparse._SubParsersAction) -> None:
