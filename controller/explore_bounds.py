@@ -24,9 +24,10 @@ from __future__ import annotations
 
 import math
 import multiprocessing
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -36,6 +37,7 @@ import trimesh
 from controller.config import Config
 from controller.explore_benchmark import ExploreSettings, ObjectRun
 from controller.motion import pad_pose_facing
+from controller.perception import ShapeEstimate
 from models.evaluation import EvalObject
 from models.geometry import VoxelGrid
 from models.prior import ShapePrior
@@ -66,12 +68,16 @@ class BoundsSettings:
     touch_counts: tuple[int, ...] = (10, 30)
     fit_steps: int = 300
     fit_learning_rate: float = 1e-2
+    oracle_candidates: int = 0
+    """Also the ideal touches chosen by the truth among this many random targets each (0: no)."""
     prior: str = "general"
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if not self.touch_counts or min(self.touch_counts) < 1 or self.fit_steps < 0:
-            raise ValueError("touch counts must be >= 1 and fit_steps >= 0")
+        if not self.touch_counts or min(self.touch_counts) < 1:
+            raise ValueError("touch counts must be >= 1")
+        if self.fit_steps < 0 or self.oracle_candidates < 0:
+            raise ValueError("fit_steps and oracle_candidates must be >= 0")
 
 
 def ideal_touch(
@@ -129,6 +135,41 @@ def fit_latent_to_volume(
     return variable.detach()
 
 
+def _chamfer_mm(run: ObjectRun, probabilities: np.ndarray) -> float | None:
+    volume = np.asarray(probabilities, dtype=np.float32)
+    return run.metrics(replace(run.vision, probabilities=volume))["chamfer_mm"]
+
+
+def ideal_touch_curve(
+    run: ObjectRun,
+    refine: Callable[[ShapeEstimate, VoxelConstraints], ShapeEstimate],
+    pad_size_m: tuple[float, float],
+    touches: int,
+    candidates_per_touch: int,
+    seed: int,
+) -> tuple[list[float | None], list[VoxelConstraints]]:
+    """Chamfer distance after 0..``touches`` ideal touches from the vision estimate, each the
+    best of ``candidates_per_touch`` random targets by the truth (1: no choice), and the
+    constraints of the touches made."""
+    points, normals = ideal_targets(run.mesh_world, touches * candidates_per_touch, seed)
+    estimate, constraints = run.vision, VoxelConstraints.none(run.grid.resolution)
+    chamfers, made = [run.vision_metrics["chamfer_mm"]], []
+    for touch in range(touches):
+        trials = []
+        for index in range(touch * candidates_per_touch, (touch + 1) * candidates_per_touch):
+            touched = ideal_touch(
+                run.mesh_world, run.grid, points[index], normals[index], pad_size_m
+            )
+            merged = constraints.merged(touched)
+            refined = refine(estimate, merged)
+            error = _chamfer_mm(run, refined.probabilities)
+            trials.append((math.inf if error is None else error, index, touched, merged, refined))
+        error, _, touched, constraints, estimate = min(trials, key=lambda trial: trial[:2])
+        chamfers.append(None if math.isinf(error) else error)  # inf: an empty prediction
+        made.append(touched)
+    return chamfers, made
+
+
 def object_bounds(
     config: Config,
     calibration: GelSightCalibration,
@@ -142,17 +183,6 @@ def object_bounds(
     run = ObjectRun(config, calibration, prior, obj, explore)
     try:
         vision = run.vision
-
-        def chamfer(probabilities: np.ndarray) -> float | None:
-            volume = np.asarray(probabilities, dtype=np.float32)
-            return run.metrics(replace(vision, probabilities=volume))["chamfer_mm"]
-
-        row: dict[str, Any] = {
-            "name": obj.name,
-            "category": obj.category,
-            "vision_mm": run.vision_metrics["chamfer_mm"],
-            "floor_mm": chamfer(run.truth),
-        }
         assert vision.latent is not None
         fitted = fit_latent_to_volume(
             prior.decode,
@@ -162,26 +192,32 @@ def object_bounds(
             settings.fit_learning_rate,
         )
         with torch.no_grad():
-            row["latent_fit_mm"] = chamfer(prior.decode(fitted).numpy())
+            fitted_probabilities = prior.decode(fitted).numpy()
+        row: dict[str, Any] = {
+            "name": obj.name,
+            "category": obj.category,
+            "vision_mm": run.vision_metrics["chamfer_mm"],
+            "floor_mm": _chamfer_mm(run, run.truth),
+            "latent_fit_mm": _chamfer_mm(run, fitted_probabilities),
+        }
         perception = run.perception(settings.seed)
         request = run.request("active", "prior")
+
+        def refine(estimate: ShapeEstimate, constraints: VoxelConstraints) -> ShapeEstimate:
+            return perception.refine_with(estimate, constraints, request)
+
         sensor = config.sensor
         pad_size_m = (sensor.pad_width_mm * 1e-3, sensor.pad_height_mm * 1e-3)
-        points, normals = ideal_targets(run.mesh_world, touches, run.metric_seed)
-        constraints = VoxelConstraints.none(run.grid.resolution)
-        estimate, curve, occupied, empty = vision, [row["vision_mm"]], [], []
-        for point, normal in zip(points, normals, strict=True):
-            touch = ideal_touch(run.mesh_world, run.grid, point, normal, pad_size_m)
-            occupied.append(len(touch.occupied))
-            empty.append(len(touch.empty))
-            constraints = constraints.merged(touch)
-            estimate = perception.refine_with(estimate, constraints, request)
-            curve.append(chamfer(estimate.probabilities))
-        row["ideal_touches_mm"] = curve
+        curve = partial(ideal_touch_curve, run, refine, pad_size_m, touches)
+        row["ideal_touches_mm"], made = curve(1, run.metric_seed)
         row["ideal_voxels_per_touch"] = {
-            "occupied": float(np.mean(occupied)),
-            "empty": float(np.mean(empty)),
+            "occupied": float(np.mean([len(touch.occupied) for touch in made])),
+            "empty": float(np.mean([len(touch.empty) for touch in made])),
         }
+        if settings.oracle_candidates > 1:
+            row["ideal_oracle_touches_mm"], _ = curve(
+                settings.oracle_candidates, run.metric_seed + 1
+            )
         return row
     finally:
         run.close()
@@ -212,15 +248,16 @@ def summarise_bounds(rows: Sequence[dict[str, Any]], touch_counts: Sequence[int]
         summary[f"{name}_change_pct"] = _mean(
             [_change_pct(row["vision_mm"], row[key]) for row in rows]
         )
-    summary["ideal_touches"] = {
-        str(count): {
-            "chamfer_mm": _mean([row["ideal_touches_mm"][count] for row in rows]),
-            "change_pct": _mean(
-                [_change_pct(row["vision_mm"], row["ideal_touches_mm"][count]) for row in rows]
-            ),
-        }
-        for count in touch_counts
-    }
+    for key in ("ideal_touches", "ideal_oracle_touches"):
+        curves = [(row["vision_mm"], row[f"{key}_mm"]) for row in rows if f"{key}_mm" in row]
+        if curves:
+            summary[key] = {
+                str(count): {
+                    "chamfer_mm": _mean([curve[count] for _, curve in curves]),
+                    "change_pct": _mean([_change_pct(v, curve[count]) for v, curve in curves]),
+                }
+                for count in touch_counts
+            }
     return summary
 
 
@@ -250,6 +287,7 @@ def run_bounds(
         "prior": prior.name,
         "seed": settings.seed,
         "fit": {"steps": settings.fit_steps, "learning_rate": settings.fit_learning_rate},
+        "oracle_candidates": settings.oracle_candidates,
         "ideal_touch": {
             "ray_spacing_mm": IDEAL_RAY_SPACING_M * 1e3,
             "depth_beyond_target_mm": IDEAL_DEPTH_M * 1e3,

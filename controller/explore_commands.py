@@ -25,8 +25,10 @@ oracle-prior --random-runs 3 --oracle-candidates 4 --json logs/bench_explore.jso
   touchshape bench explore --objects my.obj --up-axis y --touches 5 --methods active-prior \
 --json logs/mine.json
 """
-BOUNDS_EPILOG = """example:
+BOUNDS_EPILOG = """examples:
   touchshape bench explore-bounds --touches 10 30 --workers 2 --json logs/bench_explore_bounds.json
+  touchshape bench explore-bounds --touches 10 --oracle-candidates 8 --workers 2 \
+--json logs/bench_explore_bounds_oracle.json
 """
 
 
@@ -131,6 +133,12 @@ def add_explore_benchmark_command(bench_commands: argparse._SubParsersAction) ->
         "--touches", type=int, nargs="+", default=[10, 30], help="ideal touch counts reported"
     )
     bounds.add_argument("--fit-steps", type=int, default=300, help="Adam steps of the latent fit")
+    bounds.add_argument(
+        "--oracle-candidates",
+        type=int,
+        default=0,
+        help="also ideal touches each chosen by the truth among this many targets (0: no)",
+    )
     bounds.add_argument("--prior", default=None, help="prior name (default: the config's)")
     bounds.add_argument("--seed", type=int, default=0)
     bounds.add_argument("--threads", type=int, default=1, help="torch CPU threads")
@@ -189,7 +197,11 @@ def bench_explore_bounds(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     prior_name = args.prior or config.models.prior
     settings = BoundsSettings(
-        touch_counts=tuple(args.touches), fit_steps=args.fit_steps, prior=prior_name, seed=args.seed
+        touch_counts=tuple(args.touches),
+        fit_steps=args.fit_steps,
+        oracle_candidates=args.oracle_candidates,
+        prior=prior_name,
+        seed=args.seed,
     )
     result = run_bounds(
         config,

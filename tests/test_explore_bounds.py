@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 import trimesh
 
+from controller import explore_bounds
 from controller.cli import build_parser
 from controller.config import Config
 from controller.explore_bounds import (
@@ -16,6 +18,7 @@ from controller.explore_bounds import (
     fit_latent_to_volume,
     ideal_targets,
     ideal_touch,
+    ideal_touch_curve,
     run_bounds,
     summarise_bounds,
 )
@@ -65,6 +68,27 @@ def test_ideal_targets_lie_on_the_surface_off_the_bottom(sphere) -> None:
     assert np.array_equal(points, again)
 
 
+def test_the_ideal_oracle_keeps_the_best_candidate_each_touch(sphere, grid, monkeypatch) -> None:
+    # A stand-in error: the more occupied voxels the touches so far proved, the lower.
+    monkeypatch.setattr(
+        explore_bounds, "_chamfer_mm", lambda run, constraints: 1000.0 / len(constraints.occupied)
+    )
+    run = SimpleNamespace(
+        mesh_world=sphere, grid=grid, vision=None, vision_metrics={"chamfer_mm": 9.0}
+    )
+
+    def refine(estimate, constraints):
+        return SimpleNamespace(probabilities=constraints)
+
+    curve, made = ideal_touch_curve(run, refine, PAD_M, 2, 3, seed=0)
+    points, normals = ideal_targets(sphere, 6, seed=0)
+    touches = [ideal_touch(sphere, grid, p, n, PAD_M) for p, n in zip(points, normals, strict=True)]
+    first = max(touches[:3], key=lambda t: len(t.occupied))
+    second = max(touches[3:], key=lambda t: len(first.merged(t).occupied))
+    assert curve == [9.0, 1000.0 / len(first.occupied), 1000.0 / len(first.merged(second).occupied)]
+    assert [len(t.occupied) for t in made] == [len(first.occupied), len(second.occupied)]
+
+
 def test_the_latent_fit_matches_the_volume_better() -> None:
     torch.manual_seed(0)
     weights = torch.randn(4**3, 8)
@@ -101,7 +125,7 @@ def test_bounds_json_on_a_small_object() -> None:
     result = run_bounds(
         config,
         [EvalObject("small_box", "file", box)],
-        BoundsSettings(touch_counts=(2,), fit_steps=3),
+        BoundsSettings(touch_counts=(2,), fit_steps=3, oracle_candidates=2),
         prior=ShapePrior.untrained("cpu"),
         calibration=load_calibration(config),
     )
@@ -110,7 +134,9 @@ def test_bounds_json_on_a_small_object() -> None:
     assert row["name"] == "small_box" and len(row["ideal_touches_mm"]) == 3
     assert 0.0 < row["floor_mm"] < 4.0  # the true voxels, within a voxel of the true surface
     assert row["ideal_voxels_per_touch"]["occupied"] > 0
+    assert len(row["ideal_oracle_touches_mm"]) == 3
     assert set(result["summary"]["ideal_touches"]) == {"2"}
+    assert set(result["summary"]["ideal_oracle_touches"]) == {"2"}
 
 
 def test_cli_parses_the_bounds_command() -> None:
