@@ -64,8 +64,8 @@ def test_ideal_targets_lie_on_the_surface_off_the_bottom(sphere) -> None:
     assert points.shape == normals.shape == (20, 3)
     assert np.allclose(np.linalg.norm(points - CENTRE_M, axis=1), RADIUS_M, atol=1e-3)
     assert np.all(points[:, 2] > 0.01) and np.all(normals[:, 2] > -0.5)
-    again, _ = ideal_targets(sphere, 20, seed=3)
-    assert np.array_equal(points, again)
+    longer, _ = ideal_targets(sphere, 50, seed=3)
+    assert np.array_equal(points, longer[:20])  # a shorter run touches a longer one's first
 
 
 def test_the_ideal_oracle_keeps_the_best_candidate_each_touch(sphere, grid, monkeypatch) -> None:
