@@ -4,9 +4,10 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from controller.config import load_config
 from controller.output import print_json
@@ -72,6 +73,29 @@ def _load_prior(config: Config, name: str) -> ShapePrior:
     from models.prior import ShapePrior
 
     return ShapePrior.from_config(replace(config.models, prior=name))
+
+
+def _run_and_print(
+    run: Callable[..., dict[str, Any]],
+    args: argparse.Namespace,
+    config: Config,
+    prior_name: str,
+    settings: Any,
+) -> dict[str, Any]:
+    """``run`` (the benchmark or its bounds) on the objects the arguments name; prints the
+    summary and writes the JSON to ``--json``."""
+    from controller.pipeline import load_calibration
+
+    result = run(
+        config,
+        _objects(args),
+        settings,
+        prior=_load_prior(config, prior_name),
+        calibration=load_calibration(config),
+        workers=args.workers,
+    )
+    print_json(result, args.json, shown=result["summary"])
+    return result
 
 
 def add_explore_benchmark_command(bench_commands: argparse._SubParsersAction) -> None:
@@ -156,7 +180,6 @@ def bench_explore(args: argparse.Namespace) -> int:
         run_explore_benchmark,
         with_refinement,
     )
-    from controller.pipeline import load_calibration
 
     torch.set_num_threads(args.threads)
     config = with_refinement(
@@ -173,15 +196,7 @@ def bench_explore(args: argparse.Namespace) -> int:
         seed=args.seed,
         timing_resolutions=() if args.no_timing else (64, 128),
     )
-    result = run_explore_benchmark(
-        config,
-        _objects(args),
-        settings,
-        prior=_load_prior(config, prior_name),
-        calibration=load_calibration(config),
-        workers=args.workers,
-    )
-    print_json(result, args.json, shown=result["summary"])
+    result = _run_and_print(run_explore_benchmark, args, config, prior_name, settings)
     if args.plot is not None:
         plot_curves(result, args.plot)
     return 0
@@ -191,7 +206,6 @@ def bench_explore_bounds(args: argparse.Namespace) -> int:
     import torch
 
     from controller.explore_bounds import BoundsSettings, run_bounds
-    from controller.pipeline import load_calibration
 
     torch.set_num_threads(args.threads)
     config = load_config(args.config)
@@ -203,13 +217,5 @@ def bench_explore_bounds(args: argparse.Namespace) -> int:
         prior=prior_name,
         seed=args.seed,
     )
-    result = run_bounds(
-        config,
-        _objects(args),
-        settings,
-        prior=_load_prior(config, prior_name),
-        calibration=load_calibration(config),
-        workers=args.workers,
-    )
-    print_json(result, args.json, shown=result["summary"])
+    _run_and_print(run_bounds, args, config, prior_name, settings)
     return 0
