@@ -150,14 +150,14 @@ class ModelsConfig:
     reason for 3e-3 together with the anchor)."""
     refine_iterations_per_touch: int = 10
     refine_loss: Literal["sum", "balanced", "threshold"] = "threshold"
-    """The touch loss's form (models.refinement.touch_loss): "sum" as the paper writes it;
+    """The touch loss's form (models.touch.refinement.touch_loss): "sum" as the paper writes it;
     "balanced" (mean over empty + mean over occupied voxels), which keeps the many empty voxels
     of a touch from shrinking the shape; "threshold" (balanced, and a voxel stops pulling once
     it is on the right side of 0.5), which keeps the few contact voxels from inflating it
     (docs/explore.md)."""
     refine_anchor_weight: float = 0.03
     """Weight of the latent's squared distance to the vision latent in the refinement loss
-    (models.refinement.refine_latent); 0 = the paper's loss alone."""
+    (models.touch.refinement.refine_latent); 0 = the paper's loss alone."""
     refine_write_measurements: bool = True
     """Write the touches' measured voxels into the refined shape (empty 0, occupied 1)."""
 

@@ -28,7 +28,7 @@ from controller.messaging import (
     parse_explore_request,
     zenoh_config,
 )
-from controller.perception import Perception, ShapeEstimate
+from controller.perception.protocol import Perception, ShapeEstimate
 from controller.recording import SessionRecorder
 from controller.session import ExplorationSession, State
 from drivers.factory import Devices, make_devices

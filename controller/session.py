@@ -20,8 +20,9 @@ import numpy as np
 
 from controller.config import Config
 from controller.messaging import ExploreRequest
-from controller.motion import MotionPlanner, TouchGeometry, Waypoint
-from controller.perception import (
+from controller.motion.planner import MotionPlanner, TouchGeometry, Waypoint
+from controller.motion.safety import Obstacles, SafetyViolation, check_force, check_reachable
+from controller.perception.protocol import (
     Perception,
     ShapeEstimate,
     TouchMeasurement,
@@ -29,7 +30,6 @@ from controller.perception import (
     TouchTarget,
 )
 from controller.recording import SessionRecorder
-from controller.safety import Obstacles, SafetyViolation, check_force, check_reachable
 from drivers.base import DeviceError, TactileFrame
 from drivers.factory import Devices
 from drivers.tool import ToolModel

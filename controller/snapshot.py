@@ -11,8 +11,8 @@ from matplotlib import colormaps
 from PIL import Image
 
 from controller.config import Config
-from controller.motion import MotionPlanner
-from controller.safety import Obstacles
+from controller.motion.planner import MotionPlanner
+from controller.motion.safety import Obstacles
 from drivers.factory import make_devices
 from models.geometry import invert_transform, matrix_to_ur_pose
 

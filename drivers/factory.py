@@ -12,7 +12,7 @@ from drivers.config import ArmConfig, CameraConfig, GripperConfig, SensorConfig,
 from drivers.sim.world import SimWorld
 
 if TYPE_CHECKING:
-    from models.tactile_sim import GelSightSimulator
+    from models.tactile.sim import GelSightSimulator
 
 
 @dataclass
@@ -57,7 +57,7 @@ def make_devices(
     """Devices for a config; nothing is connected yet."""
     # Imported here so a real-robot install never loads the simulation's heavy pieces.
     from drivers.sim.gelsight import gel_pad_spec
-    from models.tactile_sim import GelSightSimulator
+    from models.tactile.sim import GelSightSimulator
 
     world = SimWorld.from_config(sim, arm, gripper, sensor)
     gel = GelSightSimulator(gel_pad_spec(sensor))
@@ -72,7 +72,7 @@ def make_devices(
 
 def _make_arm(config: ArmConfig, world: SimWorld) -> Arm:
     if config.type == "ur_rtde":
-        from drivers.ur_rtde_arm import URRtdeArm
+        from drivers.ur5.rtde_arm import URRtdeArm
 
         return URRtdeArm(config)
     from drivers.sim.arm import SimUR5
@@ -86,7 +86,7 @@ def _make_arm(config: ArmConfig, world: SimWorld) -> Arm:
 
 def _make_gripper(config: GripperConfig, world: SimWorld, gel: GelSightSimulator) -> Gripper:
     if config.type in ("wsg50_serial", "wsg50_tcp"):
-        from drivers.wsg50_gripper import WSG50Gripper
+        from drivers.wsg50.gripper import WSG50Gripper
 
         return WSG50Gripper(config)
     from drivers.sim.gripper import SimWSG50
@@ -108,11 +108,11 @@ def _make_tactile(
 
 def _make_camera(config: CameraConfig, world: SimWorld, rng: np.random.Generator) -> RGBDCamera:
     if config.type == "kinect_v2":
-        from drivers.kinect_v2 import KinectV2Camera
+        from drivers.rgbd.kinect_v2 import KinectV2Camera
 
         return KinectV2Camera(config)
     if config.type == "realsense":
-        from drivers.realsense import RealSenseCamera
+        from drivers.rgbd.realsense import RealSenseCamera
 
         return RealSenseCamera(config)
     from drivers.sim.camera import SimKinect

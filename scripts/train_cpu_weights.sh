@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Reproduces the committed cpu-preset weights in models/weights/ (the exact commands, seeds and
+# Reproduces the committed cpu-preset weights in models/prior/weights/ (the exact commands, seeds and
 # data recipe). Every step resumes: data builds skip finished shards, training resumes from its
 # checkpoint. Run from the repository root:
 #   nohup scripts/train_cpu_weights.sh > logs/train_cpu_weights.log 2>&1 &
@@ -42,7 +42,7 @@ $TS train calibrate --data $DATA/box --sketch-weights $RUNS/general_sketch/sketc
     --threads 1
 
 # 6. Install the float16 weights where the package loads them.
-cp $RUNS/general_sketch/sketch.pt models/weights/general_sketch_cpu.pt
-cp $RUNS/general_shape/shape_calibrated.pt models/weights/general_shape_cpu.pt
-cp $RUNS/box_shape/shape_calibrated.pt models/weights/box_shape_cpu.pt
-echo "weights installed in models/weights/"
+cp $RUNS/general_sketch/sketch.pt models/prior/weights/general_sketch_cpu.pt
+cp $RUNS/general_shape/shape_calibrated.pt models/prior/weights/general_shape_cpu.pt
+cp $RUNS/box_shape/shape_calibrated.pt models/prior/weights/box_shape_cpu.pt
+echo "weights installed in models/prior/weights/"

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from controller.cli import main
+from controller.cli.main import main
 from models.geometry import make_transform, transform_points, ur_pose_to_matrix
 
 

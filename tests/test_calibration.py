@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from models.calibration import fit_platt, fold_platt, iou_offset
-from models.networks import LATENT_DIM, ShapeNet, get_preset
+from models.prior.networks import LATENT_DIM, ShapeNet, get_preset
+from models.prior.platt import fit_platt, fold_platt, iou_offset
 
 
 def test_fit_platt_recovers_a_known_calibration() -> None:

@@ -15,18 +15,18 @@ import fakes.pylibfreenect2 as fake_freenect2
 import numpy as np
 import pytest
 
-from controller.cli import main
-from controller.hardware_commands import check_camera, check_gripper, check_tactile
+from controller.cli.check_devices import check_camera, check_gripper, check_tactile
+from controller.cli.main import main
 from drivers.config import ArmConfig, CameraConfig, GripperConfig, SensorConfig, SimConfig
 from drivers.factory import make_devices
 from drivers.gelsight_camera import GelSightCamera
-from drivers.kinect_v2 import KinectV2Camera
-from drivers.realsense import RealSenseCamera
-from drivers.sim.wsg_emulator import WSGEmulator, bench_gripper
-from drivers.wsg50_gripper import WSG50Gripper
+from drivers.rgbd.kinect_v2 import KinectV2Camera
+from drivers.rgbd.realsense import RealSenseCamera
+from drivers.sim.wsg50_emulator import WSGEmulator, bench_gripper
+from drivers.wsg50.gripper import WSG50Gripper
 
 CONTACT_WIDTH_M = 0.02  # small openings keep the simulated contact planning cheap
-EMULATOR_COMMAND = [sys.executable, "-m", "controller.cli", "sim", "wsg"]
+EMULATOR_COMMAND = [sys.executable, "-m", "controller.cli.main", "sim", "wsg"]
 
 
 @pytest.fixture

@@ -10,7 +10,8 @@ import pytest
 import torch
 import trimesh
 
-from models.dataset import (
+from models.geometry import VoxelGrid
+from models.prior.dataset import (
     EVAL_SEED_START,
     BuildSpec,
     SketchVoxelDataset,
@@ -21,7 +22,6 @@ from models.dataset import (
     split_by_shape,
     voxelize,
 )
-from models.geometry import VoxelGrid
 
 TINY = ViewRecipe(image_size=64, voxel_resolution=16)
 

@@ -16,9 +16,9 @@ from fakes.capture import HangingOpen
 from drivers.base import DeviceConnectionError, DeviceTimeoutError
 from drivers.config import CameraConfig, GripperConfig, SensorConfig
 from drivers.gelsight_camera import GelSightCamera
-from drivers.kinect_v2 import KinectV2Camera
-from drivers.realsense import RealSenseCamera
-from drivers.wsg50_gripper import WSG50Gripper
+from drivers.rgbd.kinect_v2 import KinectV2Camera
+from drivers.rgbd.realsense import RealSenseCamera
+from drivers.wsg50.gripper import WSG50Gripper
 
 MAX_LAG_S = 0.05
 TICK_S = 0.005
@@ -139,7 +139,7 @@ async def test_wsg_session_against_the_emulator_in_its_own_process() -> None:
     process = await asyncio.create_subprocess_exec(
         sys.executable,
         "-m",
-        "controller.cli",
+        "controller.cli.main",
         "sim",
         "wsg",
         "--tcp",

@@ -10,9 +10,7 @@ import pytest
 import torch
 import trimesh
 
-from controller.cli import build_parser
-from controller.config import Config
-from controller.explore_benchmark import (
+from controller.benchmarks.explore import (
     METHODS,
     ExploreSettings,
     SimTouchBench,
@@ -23,12 +21,14 @@ from controller.explore_benchmark import (
     run_explore_benchmark,
     summarise,
 )
+from controller.cli.main import build_parser
+from controller.config import Config
 from controller.messaging import ExploreRequest
-from controller.perception import TouchTarget
-from controller.pipeline import LearnedPerception, load_calibration
-from models.evaluation import EvalObject
+from controller.perception.learned import LearnedPerception, load_calibration
+from controller.perception.protocol import TouchTarget
 from models.geometry import make_transform
-from models.prior import ShapePrior
+from models.prior.evaluation import EvalObject
+from models.prior.shape_prior import ShapePrior
 
 BOX_HALF_M = 0.04
 
@@ -95,8 +95,8 @@ def test_refinement_writes_the_measured_voxels_into_the_shape(
 ) -> None:
     """The pipeline refines the latent (anchored to the vision latent) and then writes what the
     touch measured into the refined shape: its empty voxels 0, its occupied ones 1."""
-    from controller.perception import ShapeEstimate
-    from models.prior import ShapePrior
+    from controller.perception.protocol import ShapeEstimate
+    from models.prior.shape_prior import ShapePrior
 
     edge = np.array([BOX_HALF_M, BOX_HALF_M, 0.04])
     target = TouchTarget(edge, np.array([-1.0, -1.0, 0.0]) / np.sqrt(2))

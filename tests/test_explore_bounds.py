@@ -10,10 +10,8 @@ import pytest
 import torch
 import trimesh
 
-from controller import explore_bounds
-from controller.cli import build_parser
-from controller.config import Config
-from controller.explore_bounds import (
+from controller.benchmarks import explore_bounds
+from controller.benchmarks.explore_bounds import (
     BoundsSettings,
     fit_latent_to_volume,
     ideal_targets,
@@ -22,10 +20,12 @@ from controller.explore_bounds import (
     run_bounds,
     summarise_bounds,
 )
-from controller.pipeline import load_calibration
-from models.evaluation import EvalObject
+from controller.cli.main import build_parser
+from controller.config import Config
+from controller.perception.learned import load_calibration
 from models.geometry import make_transform
-from models.prior import ShapePrior
+from models.prior.evaluation import EvalObject
+from models.prior.shape_prior import ShapePrior
 
 RADIUS_M = 0.05
 CENTRE_M = np.array([0.0, 0.0, 0.06])

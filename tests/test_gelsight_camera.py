@@ -18,7 +18,7 @@ from drivers.base import DeviceConnectionError, DeviceNotConnectedError, DeviceT
 from drivers.config import SensorConfig
 from drivers.gelsight_camera import GelSightCamera, crop_and_scale, parse_device
 from drivers.vendor import MissingSDKError
-from models.tactile_sim import GelPadSpec, GelSightSimulator, sphere_cap_indentation_mm
+from models.tactile.sim import GelPadSpec, GelSightSimulator, sphere_cap_indentation_mm
 
 cv2 = pytest.importorskip("cv2", reason="needs the gelsight extra (opencv-python-headless)")
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from controller.benchmarks import benchmark_gelsight
-from controller.cli import main
-from models.tactile_calibration import (
+from controller.benchmarks.sim import benchmark_gelsight
+from controller.cli.main import main
+from models.tactile.lut import (
     DataPack,
     GelSightCalibration,
     calibrate,
@@ -103,7 +103,7 @@ def _expect_error(argv: list[str], message: str, capsys: pytest.CaptureFixture[s
 def small_calib(pack: DataPack, tmp_path: Path) -> Path:
     """A valid calibration for 320x240 frames (a crop of the real presses)."""
     crop = pack.images_bgr[:4, :240, :320]
-    from models.tactile_calibration import BallPress
+    from models.tactile.lut import BallPress
 
     presses = [BallPress(crop[i], (150.0, 120.0), 40.0, str(i)) for i in range(4)]
     calibration = calibrate(

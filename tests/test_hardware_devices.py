@@ -10,8 +10,8 @@ import os
 
 import pytest
 
+from controller.cli.check_devices import check_camera, check_gripper, check_tactile
 from controller.config import Config, load_config
-from controller.hardware_commands import check_camera, check_gripper, check_tactile
 
 
 def hardware_config() -> Config:

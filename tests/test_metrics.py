@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 import trimesh
 
-from models.dataset import voxelize
 from models.geometry import VoxelGrid
 from models.metrics import (
     mesh_metrics,
@@ -15,6 +14,7 @@ from models.metrics import (
     voxel_iou,
     voxel_surface_mesh,
 )
+from models.prior.dataset import voxelize
 
 
 def test_voxel_iou() -> None:

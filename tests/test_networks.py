@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from models.networks import (
+from models.prior.networks import (
     LATENT_DIM,
     PRESETS,
     NetworkPreset,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from models.geometry import VoxelGrid
-from models.policy import (
+from models.touch.policy import (
     ELEVATIONS_DEG,
     YAWS_DEG,
     TouchCandidate,

@@ -11,13 +11,18 @@ import torch
 import trimesh
 
 from drivers.config import CameraConfig
-from models.dataset import registered_grid
 from models.geometry import VoxelGrid, axes_facing_camera
-from models.prior import DEFAULT_WEIGHTS_DIR, PriorNotFoundError, ShapePrior, available_priors
+from models.prior.dataset import registered_grid
+from models.prior.shape_prior import (
+    DEFAULT_WEIGHTS_DIR,
+    PriorNotFoundError,
+    ShapePrior,
+    available_priors,
+)
+from models.prior.training import save_weights
+from models.prior.virtual_camera import crop_image, grid_crop
 from models.render import CameraIntrinsics, Scene, render
 from models.shapes import make_shape
-from models.training import save_weights
-from models.virtual_camera import crop_image, grid_crop
 
 FULL = CameraIntrinsics.kinect_v2_colour(0.5)
 
@@ -50,7 +55,7 @@ def test_crop_of_full_frame_matches_render_at_virtual_camera(bench_frame) -> Non
 
 def test_training_grid_is_the_controller_grid(bench_frame) -> None:
     from controller.config import VoxelGridConfig
-    from models.dataset import ViewRecipe
+    from models.prior.dataset import ViewRecipe
 
     _, pose, _ = bench_frame
     assert registered_grid(ViewRecipe(), pose) == VoxelGridConfig().grid(tuple(pose[:3, 3]))
@@ -120,7 +125,7 @@ def test_shipped_general_prior_sees_the_mug(bench_frame) -> None:
 
 
 def test_eval_prior_command_on_a_user_mesh_file(tmp_path: Path) -> None:
-    from controller.cli import main
+    from controller.cli.main import main
 
     torch.manual_seed(0)
     untrained = ShapePrior.untrained("cpu")

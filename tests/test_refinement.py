@@ -8,13 +8,13 @@ import torch
 from torch import nn
 
 from models.geometry import VoxelGrid, frame_from_z_axis, make_transform
-from models.refinement import decode_volume, direct_edit, refine_latent, touch_loss
-from models.touch_constraints import (
+from models.touch.constraints import (
     TouchResult,
     VoxelConstraints,
     constraints_from_touches,
     pad_grid_world,
 )
+from models.touch.refinement import decode_volume, direct_edit, refine_latent, touch_loss
 
 N = 8
 

@@ -23,9 +23,9 @@ from fakes.realsense_recording import (
 
 from drivers.base import DeviceConnectionError, DeviceNotConnectedError, DeviceTimeoutError
 from drivers.config import CameraConfig
-from drivers.kinect_v2 import KinectV2Camera
-from drivers.kinect_v2_worker import resample_nearest
-from drivers.realsense import RealSenseCamera
+from drivers.rgbd.kinect_v2 import KinectV2Camera
+from drivers.rgbd.kinect_v2_worker import resample_nearest
+from drivers.rgbd.realsense import RealSenseCamera
 from drivers.vendor import MissingSDKError
 from models.render import CameraIntrinsics
 

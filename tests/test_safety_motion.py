@@ -8,8 +8,8 @@ import pytest
 import trimesh
 
 from controller.config import Config, LimitsConfig
-from controller.motion import MotionPlanner
-from controller.safety import (
+from controller.motion.planner import MotionPlanner
+from controller.motion.safety import (
     Obstacles,
     SafetyViolation,
     check_clearance,
@@ -24,7 +24,7 @@ from drivers.sim.gelsight import gel_pad_spec
 from drivers.sim.gripper import SimWSG50
 from drivers.sim.world import SimWorld
 from drivers.tool import ToolModel
-from drivers.ur5_kinematics import forward_kinematics
+from drivers.ur5.kinematics import forward_kinematics
 from models.geometry import (
     make_transform,
     matrix_to_ur_pose,
@@ -32,7 +32,7 @@ from models.geometry import (
     rotation_angle_between,
     ur_pose_to_matrix,
 )
-from models.tactile_sim import GelSightSimulator
+from models.tactile.sim import GelSightSimulator
 
 CONFIG = Config()
 TOOL = ToolModel(GripperConfig(), SensorConfig())

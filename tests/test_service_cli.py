@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from models.networks import ShapeNet, SketchNet, get_preset
-from models.training import save_weights
+from models.prior.networks import ShapeNet, SketchNet, get_preset
+from models.prior.training import save_weights
 
 TOUCHSHAPE = str(Path(sys.executable).with_name("touchshape"))
 

@@ -13,7 +13,7 @@ import trimesh
 
 from controller.config import Config
 from controller.messaging import ExploreRequest
-from controller.perception import ShapeEstimate
+from controller.perception.protocol import ShapeEstimate
 from controller.service import TouchshapeService
 from drivers.factory import Devices
 from models.geometry import make_transform
@@ -115,7 +115,7 @@ async def test_a_fault_on_the_approach_retreats_to_its_start_and_up(tmp_path: Pa
 
 @pytest.mark.slow  # ~30 s: the learned prior, GelSight reconstruction and refinement
 async def test_learned_session_on_the_mug_completes_without_a_fault(tmp_path: Path) -> None:
-    from controller.pipeline import make_perception
+    from controller.perception.learned import make_perception
 
     service = TouchshapeService(config("mug"), make_perception, logs_dir=tmp_path)
     await service.start()

@@ -20,7 +20,7 @@ from drivers.base import (
 from drivers.config import ArmConfig, GripperConfig, SensorConfig, SimConfig
 from drivers.sim.arm import PROTECTIVE_STOP_HOLD_S, SimUR5
 from drivers.sim.world import SimWorld
-from drivers.ur5_kinematics import forward_kinematics, inverse_kinematics
+from drivers.ur5.kinematics import forward_kinematics, inverse_kinematics
 from models.geometry import (
     invert_transform,
     make_transform,

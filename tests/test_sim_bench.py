@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from controller.cli import main
+from controller.cli.main import main
 from controller.config import Config
 from drivers.base import DeviceNotConnectedError
 from drivers.factory import make_devices

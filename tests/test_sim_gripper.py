@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 import trimesh
 
-from controller.motion import pad_pose_facing, tcp_pose_for_pad
+from controller.motion.planner import pad_pose_facing, tcp_pose_for_pad
 from drivers.base import DeviceNotConnectedError, MotionRejectedError
 from drivers.config import ArmConfig, GripperConfig, SensorConfig, SimConfig
 from drivers.sim.gelsight import gel_pad_spec
 from drivers.sim.gripper import SimWSG50
 from drivers.sim.world import SimWorld
 from models.geometry import invert_transform, make_transform
-from models.tactile_sim import GelSightSimulator
+from models.tactile.sim import GelSightSimulator
 
 BOX_FACE_Y_M = -0.05  # the box's robot-facing face
 TOUCH_WIDTH_M = 0.08

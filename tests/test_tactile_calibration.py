@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from models.tactile_calibration import (
+from models.tactile.lut import (
     FORMAT_VERSION,
     CalibrationError,
     DataPack,

@@ -9,7 +9,8 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from models.geometry import transform_points
-from models.tactile_calibration import (
+from models.tactile.evaluation import evaluate_press, fit_sphere_radius, summarise
+from models.tactile.lut import (
     CalibrationError,
     DataPack,
     GelSightCalibration,
@@ -17,8 +18,7 @@ from models.tactile_calibration import (
     default_datapack_path,
     load_datapack,
 )
-from models.tactile_evaluation import evaluate_press, fit_sphere_radius, summarise
-from models.tactile_reconstruction import (
+from models.tactile.reconstruction import (
     FreeBorderPoissonSolver,
     PoissonSolver,
     TactileReconstructor,
@@ -26,7 +26,7 @@ from models.tactile_reconstruction import (
     contact_mask,
     imprint_at_border,
 )
-from models.tactile_sim import GelSightSimulator
+from models.tactile.sim import GelSightSimulator
 
 MM_PER_PX = 0.0295
 

@@ -11,7 +11,7 @@ import trimesh
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
-from models.tactile_sim import GelPadSpec, GelSightSimulator, sphere_cap_indentation_mm
+from models.tactile.sim import GelPadSpec, GelSightSimulator, sphere_cap_indentation_mm
 
 SPEC = GelPadSpec()
 PX_MM = SPEC.mm_per_px

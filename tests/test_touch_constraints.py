@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from models.geometry import VoxelGrid, frame_from_z_axis, make_transform, segment_box_clip
-from models.touch_constraints import (
+from models.touch.constraints import (
     TouchResult,
     VoxelConstraints,
     _clip_to_box,

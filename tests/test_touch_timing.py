@@ -6,7 +6,7 @@ import json
 
 import torch
 
-from models.touch_timing import touch_latency
+from controller.benchmarks.touch_latency import touch_latency
 
 
 def test_touch_latency_reports_select_and_refine_as_json() -> None:

@@ -11,10 +11,10 @@ import pytest
 import torch
 import torch.multiprocessing as mp
 
-from models import networks
-from models.dataset import BuildSpec, SketchVoxelDataset, ViewRecipe, build_dataset
-from models.networks import NetworkPreset, ShapeNet, SketchNet, normalise_rgb
-from models.training import (
+from models.prior import networks
+from models.prior.dataset import BuildSpec, SketchVoxelDataset, ViewRecipe, build_dataset
+from models.prior.networks import NetworkPreset, ShapeNet, SketchNet, normalise_rgb
+from models.prior.training import (
     TrainConfig,
     ground_truth_shape_input,
     paper_optimizer,

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from drivers.config import ArmConfig, GripperConfig, SensorConfig, SimConfig
-from drivers.sim.ur_controller import (
+from drivers.sim.ur_emulator import (
     CONTROLLER_VERSION,
     DASHBOARD_PORT,
     RTDE_PORT,
@@ -23,7 +23,7 @@ from drivers.sim.ur_controller import (
     URControllerEmulator,
 )
 from drivers.sim.world import SimWorld
-from drivers.ur5_kinematics import forward_kinematics
+from drivers.ur5.kinematics import forward_kinematics
 from models.geometry import matrix_to_ur_pose
 
 _host_numbers = itertools.count(2)

@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controller.check_commands import check_arm
-from controller.cli import main
+from controller.cli.check import check_arm
+from controller.cli.main import main
 from drivers.base import (
     DeviceConnectionError,
     DeviceNotConnectedError,
@@ -30,7 +30,7 @@ from drivers.base import (
 )
 from drivers.config import ArmConfig, CameraConfig, GripperConfig, SensorConfig, SimConfig
 from drivers.factory import make_devices
-from drivers.sim.ur_controller import (
+from drivers.sim.ur_emulator import (
     DASHBOARD_PORT,
     RTDE_PORT,
     SCRIPT_PORT,
@@ -38,7 +38,7 @@ from drivers.sim.ur_controller import (
     URControllerEmulator,
 )
 from drivers.sim.world import SimWorld
-from drivers.ur_rtde_arm import URRtdeArm, WorkerLink
+from drivers.ur5.rtde_arm import URRtdeArm, WorkerLink
 
 log = logging.getLogger(__name__)
 

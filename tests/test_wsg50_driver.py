@@ -23,8 +23,9 @@ from drivers.base import (
     MotionRejectedError,
 )
 from drivers.config import GripperConfig
-from drivers.sim.wsg_emulator import WSGEmulator, bench_gripper
-from drivers.wsg50 import (
+from drivers.sim.wsg50_emulator import WSGEmulator, bench_gripper
+from drivers.wsg50.gripper import WSG50Gripper
+from drivers.wsg50.protocol import (
     Command,
     FrameDecoder,
     Reply,
@@ -36,7 +37,6 @@ from drivers.wsg50 import (
     encode_reply,
     update_payload,
 )
-from drivers.wsg50_gripper import WSG50Gripper
 
 CONTACT_WIDTH_M = 0.02
 LINKS = ["pty", "tcp"]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from drivers.base import DeviceConnectionError, DeviceTimeoutError, MotionRejectedError
-from drivers.wsg50 import (
+from drivers.wsg50.protocol import (
     Command,
     Frame,
     FrameDecoder,

@@ -37,7 +37,7 @@ from drivers.base import (
 )
 from drivers.config import ArmConfig
 from drivers.sim.world import SimWorld
-from drivers.ur5_kinematics import forward_kinematics, inverse_kinematics
+from drivers.ur5.kinematics import forward_kinematics, inverse_kinematics
 from models.geometry import invert_transform, matrix_to_ur_pose, ur_pose_to_matrix
 
 JOINT_LIMIT_RAD = 2.0 * np.pi

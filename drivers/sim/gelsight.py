@@ -9,7 +9,7 @@ import numpy as np
 from drivers.base import DeviceNotConnectedError, TactileFrame, TactileSensor
 from drivers.config import SensorConfig
 from drivers.sim.world import SimWorld
-from models.tactile_sim import GelPadSpec, GelSightSimulator
+from models.tactile.sim import GelPadSpec, GelSightSimulator
 
 
 def gel_pad_spec(config: SensorConfig) -> GelPadSpec:

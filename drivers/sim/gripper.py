@@ -26,7 +26,7 @@ from drivers.base import (
 from drivers.config import GripperConfig
 from drivers.sim.world import SimWorld
 from models.geometry import transform_points
-from models.tactile_sim import GelSightSimulator
+from models.tactile.sim import GelSightSimulator
 
 SWEEP_STEP_M = 0.0005
 """Finger travel between collision checks; a blocking contact is then refined by bisection."""

@@ -13,7 +13,7 @@ import numpy as np
 
 from controller.config import Config
 from controller.messaging import ExploreRequest
-from controller.perception import (
+from controller.perception.protocol import (
     ShapeEstimate,
     TouchMeasurement,
     TouchOutcome,

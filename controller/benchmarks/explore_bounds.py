@@ -1,0 +1,310 @@
+"""How far can touches lower the Chamfer distance at all? Bounds for the exploration benchmark.
+
+Per object, with the exploration benchmark's set-up (:class:`ObjectRun`: the bench camera's
+frame, the prior's vision estimate, the voxelised truth):
+
+* ``floor_mm``: the Chamfer distance of the true voxels themselves (marching cubes of the
+  voxelised mesh): what a perfect voxel estimate at this resolution scores.
+* ``latent_fit_mm``: the prior's latent fitted to the whole true volume (Adam on the binary
+  cross-entropy, from the vision latent). Latent refinement cannot beat the best shape the
+  latent can express, and this is close to it: complete knowledge of the shape, not 10 touches.
+* ``ideal_touches_mm``: the curve after 0..K touches of an idealised sensor, refined exactly as
+  the pipeline refines (``LearnedPerception.refine_with``, the config's ``[models]``). Each
+  touch is a pad-sized range image: every ray of the pad, 1 mm apart, measures its first hit
+  on the true mesh within ``IDEAL_DEPTH_M`` of the target, at a random surface point approached
+  along the true normal. That is far more than a GelSight touch gives: the gel images only
+  where it is pressed, a few square millimetres at the contact force (2-12 occupied voxels per
+  touch on the bench against ~30 here), and the target is not known to lie on the surface.
+
+A touch policy or a refinement that lowers the error by more than the ideal touches do would
+have to know more than they measure; the latent fit bounds every latent refinement.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, replace
+from functools import partial
+from typing import Any
+
+import numpy as np
+import torch
+import trimesh
+
+from controller.benchmarks.explore import ExploreSettings, ObjectRun
+from controller.config import Config
+from controller.motion.planner import pad_pose_facing
+from controller.perception.protocol import ShapeEstimate
+from models.geometry import VoxelGrid
+from models.prior.evaluation import EvalObject
+from models.prior.shape_prior import ShapePrior
+from models.tactile.lut import GelSightCalibration
+from models.touch.constraints import (
+    TouchResult,
+    VoxelConstraints,
+    pad_grid_world,
+    touch_constraints,
+)
+from models.touch.refinement import Decode, decode_volume
+
+IDEAL_RAY_SPACING_M = 0.001
+IDEAL_STANDOFF_M = 0.03
+"""Rays start this far in front of the target, along the normal."""
+IDEAL_DEPTH_M = 0.02
+"""A ray measures hits up to this far beyond the target; past it, it is free to there."""
+TARGET_POOL_SAMPLES = 10_000
+MIN_TARGET_HEIGHT_M = 0.01
+MAX_DOWNWARD_NORMAL_Z = -0.5
+"""Targets on the bottom (normals pointing down more than this) are left out, as the pipeline's
+table filter leaves out approaches from below."""
+
+
+@dataclass(frozen=True)
+class BoundsSettings:
+    """What the bounds measure (the CLI's options)."""
+
+    touch_counts: tuple[int, ...] = (10, 30)
+    fit_steps: int = 300
+    fit_learning_rate: float = 1e-2
+    oracle_candidates: int = 0
+    """Also the ideal touches chosen by the truth among this many random targets each (0: no)."""
+    prior: str = "general"
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.touch_counts or min(self.touch_counts) < 1:
+            raise ValueError("touch counts must be >= 1")
+        if self.fit_steps < 0 or self.oracle_candidates < 0:
+            raise ValueError("fit_steps and oracle_candidates must be >= 0")
+
+
+def ideal_touch(
+    mesh_world: trimesh.Trimesh,
+    grid: VoxelGrid,
+    point_world: np.ndarray,
+    normal_world: np.ndarray,
+    pad_size_m: tuple[float, float],
+) -> VoxelConstraints:
+    """The voxel constraints of an ideal range-imaging touch at a surface point (module doc)."""
+    pose_world_pad = pad_pose_facing(point_world, normal_world, IDEAL_STANDOFF_M)
+    direction = pose_world_pad[:3, 2]
+    origins = pad_grid_world(pose_world_pad, pad_size_m, IDEAL_RAY_SPACING_M)
+    reach = IDEAL_STANDOFF_M + IDEAL_DEPTH_M
+    ends = origins + reach * direction
+    hit = np.zeros(len(origins), dtype=bool)
+    locations, ray_index, _ = mesh_world.ray.intersects_location(
+        origins, np.repeat(direction[None], len(origins), axis=0), multiple_hits=False
+    )
+    for location, ray in zip(locations, ray_index, strict=True):
+        if (location - origins[ray]) @ direction <= reach:
+            hit[ray], ends[ray] = True, location
+    if not hit.any():
+        return touch_constraints(TouchResult.from_miss(origins, ends), grid)
+    touch = TouchResult.from_contact(ends[hit], direction, origins[0], ends[~hit])
+    return touch_constraints(touch, grid)
+
+
+def ideal_targets(
+    mesh_world: trimesh.Trimesh, count: int, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` random surface points (area-uniform) and their outward normals, off the
+    bottom; (count, 3) each. The first of a seeded order of a fixed pool, so a shorter run
+    touches the first targets of a longer one."""
+    points, faces = trimesh.sample.sample_surface(mesh_world, TARGET_POOL_SAMPLES, seed=seed)
+    normals = mesh_world.face_normals[faces]
+    keep = (points[:, 2] > MIN_TARGET_HEIGHT_M) & (normals[:, 2] > MAX_DOWNWARD_NORMAL_Z)
+    points, normals = points[keep], normals[keep]
+    if count > len(points):
+        raise ValueError(f"{count} targets asked, the surface pool has {len(points)}")
+    chosen = np.random.default_rng(seed).permutation(len(points))[:count]
+    return points[chosen], normals[chosen]
+
+
+def fit_latent_to_volume(
+    decode: Decode, latent: torch.Tensor, truth: torch.Tensor, steps: int, learning_rate: float
+) -> torch.Tensor:
+    """The latent whose decoded volume best matches ``truth`` (N, N, N) in binary
+    cross-entropy, by Adam from ``latent``; detached."""
+    variable = latent.detach().clone().requires_grad_(True)
+    optimiser = torch.optim.Adam([variable], lr=learning_rate)
+    with torch.enable_grad():
+        for _ in range(steps):
+            probabilities = decode_volume(decode, variable).clamp(1e-6, 1 - 1e-6)
+            loss = torch.nn.functional.binary_cross_entropy(probabilities, truth)
+            (variable.grad,) = torch.autograd.grad(loss, variable)
+            optimiser.step()
+    return variable.detach()
+
+
+def _chamfer_mm(run: ObjectRun, probabilities: np.ndarray) -> float | None:
+    volume = np.asarray(probabilities, dtype=np.float32)
+    return run.metrics(replace(run.vision, probabilities=volume))["chamfer_mm"]
+
+
+def ideal_touch_curve(
+    run: ObjectRun,
+    refine: Callable[[ShapeEstimate, VoxelConstraints], ShapeEstimate],
+    pad_size_m: tuple[float, float],
+    touches: int,
+    candidates_per_touch: int,
+    seed: int,
+) -> tuple[list[float | None], list[VoxelConstraints]]:
+    """Chamfer distance after 0..``touches`` ideal touches from the vision estimate, each the
+    best of ``candidates_per_touch`` random targets by the truth (1: no choice), and the
+    constraints of the touches made."""
+    points, normals = ideal_targets(run.mesh_world, touches * candidates_per_touch, seed)
+    estimate, constraints = run.vision, VoxelConstraints.none(run.grid.resolution)
+    chamfers, made = [run.vision_metrics["chamfer_mm"]], []
+    for touch in range(touches):
+        trials = []
+        for index in range(touch * candidates_per_touch, (touch + 1) * candidates_per_touch):
+            touched = ideal_touch(
+                run.mesh_world, run.grid, points[index], normals[index], pad_size_m
+            )
+            merged = constraints.merged(touched)
+            refined = refine(estimate, merged)
+            error = _chamfer_mm(run, refined.probabilities)
+            trials.append((math.inf if error is None else error, index, touched, merged, refined))
+        error, _, touched, constraints, estimate = min(trials, key=lambda trial: trial[:2])
+        chamfers.append(None if math.isinf(error) else error)  # inf: an empty prediction
+        made.append(touched)
+    return chamfers, made
+
+
+def object_bounds(
+    config: Config,
+    calibration: GelSightCalibration,
+    prior: ShapePrior,
+    obj: EvalObject,
+    settings: BoundsSettings,
+) -> dict[str, Any]:
+    """One object's row of the bounds JSON."""
+    touches = max(settings.touch_counts)
+    explore = ExploreSettings(touches=touches, prior=settings.prior, seed=settings.seed)
+    run = ObjectRun(config, calibration, prior, obj, explore)
+    try:
+        vision = run.vision
+        assert vision.latent is not None
+        fitted = fit_latent_to_volume(
+            prior.decode,
+            torch.as_tensor(vision.latent),
+            torch.from_numpy(run.truth),
+            settings.fit_steps,
+            settings.fit_learning_rate,
+        )
+        with torch.no_grad():
+            fitted_probabilities = prior.decode(fitted).numpy()
+        row: dict[str, Any] = {
+            "name": obj.name,
+            "category": obj.category,
+            "vision_mm": run.vision_metrics["chamfer_mm"],
+            "floor_mm": _chamfer_mm(run, run.truth),
+            "latent_fit_mm": _chamfer_mm(run, fitted_probabilities),
+        }
+        perception = run.perception(settings.seed)
+        request = run.request("active", "prior")
+
+        def refine(estimate: ShapeEstimate, constraints: VoxelConstraints) -> ShapeEstimate:
+            return perception.refine_with(estimate, constraints, request)
+
+        sensor = config.sensor
+        pad_size_m = (sensor.pad_width_mm * 1e-3, sensor.pad_height_mm * 1e-3)
+        curve = partial(ideal_touch_curve, run, refine, pad_size_m, touches)
+        row["ideal_touches_mm"], made = curve(1, run.metric_seed)
+        row["ideal_voxels_per_touch"] = {
+            "occupied": float(np.mean([len(touch.occupied) for touch in made])),
+            "empty": float(np.mean([len(touch.empty) for touch in made])),
+        }
+        if settings.oracle_candidates > 1:
+            row["ideal_oracle_touches_mm"], _ = curve(
+                settings.oracle_candidates, run.metric_seed + 1
+            )
+        return row
+    finally:
+        run.close()
+
+
+def _object_bounds_in_worker(threads: int, *args: Any) -> dict[str, Any]:
+    torch.set_num_threads(threads)
+    return object_bounds(*args)
+
+
+def _change_pct(before: float | None, after: float | None) -> float | None:
+    if before is None or after is None or not before > 0:
+        return None
+    return 100.0 * (after - before) / before
+
+
+def _mean(values: Sequence[float | None]) -> float | None:
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    return float(np.mean(finite)) if finite else None
+
+
+def summarise_bounds(rows: Sequence[dict[str, Any]], touch_counts: Sequence[int]) -> dict:
+    """Means over objects; ``*_change_pct`` are means of the per-object changes from vision."""
+    summary: dict[str, Any] = {
+        key: _mean([row[key] for row in rows]) for key in ("vision_mm", "floor_mm", "latent_fit_mm")
+    }
+    for key, name in (("floor_mm", "floor"), ("latent_fit_mm", "latent_fit")):
+        summary[f"{name}_change_pct"] = _mean(
+            [_change_pct(row["vision_mm"], row[key]) for row in rows]
+        )
+    for key in ("ideal_touches", "ideal_oracle_touches"):
+        curves = [(row["vision_mm"], row[f"{key}_mm"]) for row in rows if f"{key}_mm" in row]
+        if curves:
+            summary[key] = {
+                str(count): {
+                    "chamfer_mm": _mean([curve[count] for _, curve in curves]),
+                    "change_pct": _mean([_change_pct(v, curve[count]) for v, curve in curves]),
+                }
+                for count in touch_counts
+            }
+    return summary
+
+
+def run_bounds(
+    config: Config,
+    objects: Sequence[EvalObject],
+    settings: BoundsSettings,
+    *,
+    prior: ShapePrior,
+    calibration: GelSightCalibration,
+    workers: int = 1,
+) -> dict[str, Any]:
+    """The bounds JSON: per object ``vision_mm``, ``floor_mm``, ``latent_fit_mm``,
+    ``ideal_touches_mm`` (after 0..K touches) and a ``summary`` (docs/explore.md)."""
+    args = [(config, calibration, prior, obj, settings) for obj in objects]
+    if workers <= 1:
+        rows = [object_bounds(*a) for a in args]
+    else:
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(workers, mp_context=context) as pool:
+            futures = [
+                pool.submit(_object_bounds_in_worker, torch.get_num_threads(), *a) for a in args
+            ]
+            rows = [future.result() for future in futures]
+    models = config.models
+    return {
+        "prior": prior.name,
+        "seed": settings.seed,
+        "fit": {"steps": settings.fit_steps, "learning_rate": settings.fit_learning_rate},
+        "oracle_candidates": settings.oracle_candidates,
+        "ideal_touch": {
+            "ray_spacing_mm": IDEAL_RAY_SPACING_M * 1e3,
+            "depth_beyond_target_mm": IDEAL_DEPTH_M * 1e3,
+            "pad_mm": [config.sensor.pad_width_mm, config.sensor.pad_height_mm],
+        },
+        "refinement": {
+            "loss": models.refine_loss,
+            "learning_rate": models.refine_learning_rate,
+            "iterations_per_touch": models.refine_iterations_per_touch,
+            "anchor_weight": models.refine_anchor_weight,
+            "write_measurements": models.refine_write_measurements,
+        },
+        "chamfer": "mm, unsquared: mean NN distance pred->gt + gt->pred, 10k samples each",
+        "objects": rows,
+        "summary": summarise_bounds(rows, settings.touch_counts),
+    }

@@ -1,0 +1,136 @@
+"""Benchmark figures of the shape priors: inference latency, training throughput, model sizes.
+
+Measured, printed as JSON and reported in docs/prior.md; never asserted (timings depend on the
+machine and its load).
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import statistics
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from models.geometry import VoxelGrid, axes_facing_camera
+from models.prior.evaluation import BenchCamera
+from models.prior.networks import ShapeNet, SketchNet, get_preset, normalise_rgb, parameter_count
+from models.prior.shape_prior import DEFAULT_WEIGHTS_DIR, ShapePrior
+from models.prior.training import paper_optimizer, shape_loss, sketch_loss
+from models.render import Scene, render
+from models.shapes import make_shape
+
+
+def _timed_ms(function: Callable[[], object], repeats: int) -> dict[str, float]:
+    """Median / min / max of ``repeats`` calls after one warm-up call, milliseconds."""
+    function()
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        function()
+        samples.append((time.perf_counter() - start) * 1e3)
+    return {
+        "median_ms": round(statistics.median(samples), 2),
+        "min_ms": round(min(samples), 2),
+        "max_ms": round(max(samples), 2),
+        "repeats": repeats,
+    }
+
+
+def _training_throughput(preset_name: str, batch: int, steps: int) -> dict[str, float]:
+    """Images per second of one optimiser step of each stage on random data."""
+    preset = get_preset(preset_name)
+    size, n = preset.image_size, preset.voxel_resolution
+    torch.manual_seed(0)
+    rgb = torch.rand(batch, 3, size, size)
+    sketch_batch = {
+        "nearness": torch.rand(batch, 1, size, size),
+        "normals": torch.rand(batch, 3, size, size),
+        "silhouette": (torch.rand(batch, 1, size, size) > 0.5).float(),
+    }
+    voxels = (torch.rand(batch, n, n, n) > 0.9).float()
+    sketch, shape = SketchNet(preset), ShapeNet(preset)
+    sketch_opt = paper_optimizer("sketch", sketch, None)
+    shape_opt = paper_optimizer("shape", shape, None)
+
+    def sketch_step() -> None:
+        sketch_opt.zero_grad()
+        sketch_loss(sketch(normalise_rgb(rgb)), sketch_batch)["total"].backward()
+        sketch_opt.step()
+
+    def shape_step() -> None:
+        shape_opt.zero_grad()
+        shape_loss(shape(torch.rand(batch, 4, size, size)), voxels).backward()
+        shape_opt.step()
+
+    result = {}
+    for stage, step in (("sketch", sketch_step), ("shape", shape_step)):
+        timing = _timed_ms(step, steps)
+        result[f"{stage}_images_per_s"] = round(batch / (timing["median_ms"] / 1e3), 2)
+    result["batch"] = batch
+    return result
+
+
+def benchmark_prior(camera: BenchCamera, *, repeats: int = 10) -> dict:
+    """Latency (full bench frame -> voxels) and sizes for both presets; training throughput."""
+    rng = np.random.default_rng(0)
+    scene = Scene.bench(make_shape("mug", rng), camera.object_albedo_rgb, camera.table_size_m)
+    frame = render(scene, camera.intrinsics, camera.pose_world_camera, rng=rng)
+    axes = axes_facing_camera(camera.pose_world_camera[:3, 3])
+    figures: dict = {
+        "benchmark": "prior",
+        "machine": {
+            "cpu_count": os.cpu_count(),
+            "torch_threads": torch.get_num_threads(),
+            "processor": platform.processor() or platform.machine(),
+            "torch": torch.__version__,
+        },
+        "frame": [camera.intrinsics.width, camera.intrinsics.height],
+        "presets": {},
+    }
+    for name in ("cpu", "paper"):
+        try:
+            prior = ShapePrior.load("general", preset=name)
+            weights = "trained"
+        except ValueError:
+            prior = ShapePrior.untrained(name)
+            weights = "untrained (random)"
+        preset = prior.preset
+        grid = VoxelGrid(preset.voxel_resolution, prior.grid_extent_m, (0.0, 0.0, 0.0), axes)
+        entry = {
+            "weights": weights,
+            "image_size": preset.image_size,
+            "voxel_resolution": preset.voxel_resolution,
+            "sketch_params": parameter_count(prior.sketch_net),
+            "shape_params": parameter_count(prior.shape_net),
+            "float16_mb": round(
+                2 * (parameter_count(prior.sketch_net) + parameter_count(prior.shape_net)) / 1e6, 2
+            ),
+            "rgb_to_voxels": _timed_ms(
+                lambda p=prior, g=grid: p.predict(
+                    frame.colour_rgb, camera.intrinsics, camera.pose_world_camera, g
+                ),
+                repeats if name == "cpu" else max(2, repeats // 4),
+            ),
+            "rgbd_to_voxels": _timed_ms(
+                lambda p=prior, g=grid: p.predict(
+                    frame.colour_rgb,
+                    camera.intrinsics,
+                    camera.pose_world_camera,
+                    g,
+                    depth_m=frame.depth_m,
+                ),
+                repeats if name == "cpu" else max(2, repeats // 4),
+            ),
+        }
+        entry["training"] = _training_throughput(
+            name, 16 if name == "cpu" else 1, 3 if name == "cpu" else 1
+        )
+        figures["presets"][name] = entry
+    figures["committed_weights_mb"] = round(
+        sum(p.stat().st_size for p in DEFAULT_WEIGHTS_DIR.glob("*.pt")) / 1e6, 2
+    )
+    return figures

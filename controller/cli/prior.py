@@ -1,0 +1,320 @@
+"""CLI commands of the shape priors: `data build`, `train`, `eval prior`, `bench prior`."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+from controller.cli.output import print_json
+from controller.config import load_config
+
+
+def add_prior_commands(
+    groups: argparse._SubParsersAction, bench_commands: argparse._SubParsersAction
+) -> None:
+    """Add the `data build`, `train sketch|shape`, `eval prior` and `bench prior` commands."""
+    from models.prior.dataset import ALL_CATEGORIES
+    from models.shapes import CATEGORIES
+
+    data = groups.add_parser("data", help="training data for the shape priors")
+    data_commands = data.add_subparsers(dest="command", required=True)
+    build = data_commands.add_parser(
+        "build",
+        help="render shapes into sharded training data (RGB, sketches, voxels) with a manifest",
+        epilog="examples:\n  touchshape data build --out logs/data/general "
+        "--shapes-per-category 80 --views 6 --seed 0\n  touchshape data build --out "
+        "logs/data/shapenet --source ~/ShapeNetCore.v2 --shapes-per-category 100 --views 20",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    build.add_argument("--out", type=Path, required=True, help="dataset folder (resumable)")
+    build.add_argument(
+        "--source",
+        default="procedural",
+        help="'procedural' or a ShapeNetCore-style folder (synset/model/models/"
+        "model_normalized.obj, y up)",
+    )
+    build.add_argument(
+        "--categories",
+        nargs="+",
+        default=list(CATEGORIES),
+        choices=ALL_CATEGORIES,
+        metavar="NAME",
+        help="procedural categories (default: the 14; 'box' = the box family)",
+    )
+    build.add_argument("--shapes-per-category", type=int, default=40)
+    build.add_argument("--views", type=int, default=6, help="views per shape")
+    build.add_argument("--seed", type=int, default=0, help="first shape seed (< 1,000,000)")
+    build.add_argument("--preset", default="cpu", help="network preset: image and voxel sizes")
+    build.add_argument("--workers", type=int, default=2, help="parallel processes")
+    build.set_defaults(handler=data_build)
+
+    train = groups.add_parser("train", help="train the sketch or shape network")
+    train_commands = train.add_subparsers(dest="command", required=True)
+    for stage in ("sketch", "shape"):
+        parser = train_commands.add_parser(
+            stage,
+            help=f"train the {'2.5D sketch' if stage == 'sketch' else '3D shape'} network",
+            epilog=f"example: touchshape train {stage} --preset cpu --data logs/data/general "
+            f"--out logs/train/general_{stage} --epochs 4\n"
+            f"multi-GPU: torchrun --nproc_per_node 4 -m controller.cli.main train {stage} ...",
+        )
+        parser.add_argument("--data", type=Path, required=True, help="dataset folder")
+        parser.add_argument("--out", type=Path, required=True, help="checkpoints and metrics")
+        parser.add_argument("--preset", default="cpu", choices=("cpu", "paper"))
+        parser.add_argument("--epochs", type=int, default=10)
+        parser.add_argument("--batch-size", type=int, default=16)
+        parser.add_argument("--lr", type=float, default=None, help="default: the paper's")
+        parser.add_argument(
+            "--max-minutes",
+            type=float,
+            default=None,
+            help="stop after this much training time (resume continues)",
+        )
+        parser.add_argument("--seed", type=int, default=0)
+        parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+        parser.add_argument("--init", default=None, help="start from these weights (.pt)")
+        parser.add_argument("--no-augment", action="store_true", help="no colour/light jitter")
+        if stage == "shape":
+            parser.add_argument(
+                "--sketch-weights",
+                default=None,
+                help="also validate on sketches predicted by these weights",
+            )
+            parser.add_argument(
+                "--positive-weight",
+                type=float,
+                default=1.0,
+                help="BCE weight of occupied voxels (1 = the paper's BCE)",
+            )
+            parser.add_argument(
+                "--sensor-depth-prob",
+                type=float,
+                default=0.5,
+                help="fraction of samples with simulated Kinect depth",
+            )
+        parser.set_defaults(handler=train_network, stage=stage)
+
+    calibrate = train_commands.add_parser(
+        "calibrate",
+        help="Platt-calibrate a shape net's voxel probabilities on predicted sketches",
+        epilog="example: touchshape train calibrate --data logs/data/general "
+        "--sketch-weights logs/train/general_sketch/sketch.pt "
+        "--shape-weights logs/train/general_shape/shape.pt "
+        "--out logs/train/general_shape/shape_calibrated.pt",
+    )
+    calibrate.add_argument("--data", type=Path, required=True, help="dataset folder")
+    calibrate.add_argument("--sketch-weights", type=Path, required=True)
+    calibrate.add_argument("--shape-weights", type=Path, required=True)
+    calibrate.add_argument("--out", type=Path, required=True, help="calibrated shape weights")
+    calibrate.add_argument("--preset", default="cpu", choices=("cpu", "paper"))
+    calibrate.add_argument("--samples", type=int, default=256, help="views to fit / to report")
+    calibrate.add_argument("--seed", type=int, default=0, help="train/val split seed")
+    calibrate.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    calibrate.set_defaults(handler=calibrate_shape)
+
+    evaluate = groups.add_parser("eval", help="evaluate models on the simulated bench")
+    eval_commands = evaluate.add_subparsers(dest="command", required=True)
+    prior = eval_commands.add_parser(
+        "prior",
+        help="render objects on the bench, predict voxels, report IoU / Chamfer (JSON)",
+        epilog="examples:\n  touchshape eval prior --views 4 --json logs/eval_prior_rgb.json\n"
+        "  touchshape eval prior --input rgbd --views 4 --json logs/eval_prior_rgbd.json\n"
+        "  touchshape eval prior --objects my.obj other.stl --views 8 --json logs/mine.json\n"
+        "  touchshape eval prior --prior box --categories box --json logs/eval_box.json",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    prior.add_argument("--config", type=Path, default=None, help="TOML config (camera, prior)")
+    prior.add_argument(
+        "--objects",
+        nargs="+",
+        type=Path,
+        default=None,
+        help="mesh files (default: held-out procedural shapes)",
+    )
+    prior.add_argument("--up-axis", default="z", help="up axis of the mesh files (y: ShapeNet)")
+    prior.add_argument(
+        "--fit-size",
+        type=float,
+        default=None,
+        help="scale mesh files to this largest extent, metres",
+    )
+    prior.add_argument(
+        "--categories",
+        nargs="+",
+        default=list(CATEGORIES),
+        choices=ALL_CATEGORIES,
+        metavar="NAME",
+        help="held-out procedural categories (default: the 14)",
+    )
+    prior.add_argument("--shapes-per-category", type=int, default=5)
+    prior.add_argument("--input", choices=("rgb", "rgbd"), default="rgb")
+    prior.add_argument("--views", type=int, default=4, help="random object yaws per object")
+    prior.add_argument("--prior", default=None, help="prior name (default: the config's)")
+    prior.add_argument("--preset", default=None, help="network preset (default: the config's)")
+    prior.add_argument("--weights-dir", default=None, help="default: the config's / shipped")
+    prior.add_argument("--seed", type=int, default=0, help="view seed")
+    prior.add_argument("--json", type=Path, default=None, help="also write the JSON here")
+    prior.set_defaults(handler=eval_prior)
+
+    bench = bench_commands.add_parser(
+        "prior",
+        help="time image -> voxels for both presets, training throughput, model sizes",
+        epilog="example: touchshape bench prior --json logs/bench_prior.json",
+    )
+    bench.add_argument("--repeats", type=int, default=10, help="timed calls per measurement")
+    bench.add_argument("--json", type=Path, default=None, help="also write the JSON here")
+    bench.set_defaults(handler=bench_prior)
+
+
+def data_build(args: argparse.Namespace) -> int:
+    from models.prior.dataset import BuildSpec, ViewRecipe, build_dataset
+    from models.prior.networks import get_preset
+
+    config = load_config(getattr(args, "config", None))
+    camera = config.cameras.rgbd
+    preset = get_preset(args.preset)
+    recipe = ViewRecipe(
+        image_size=preset.image_size,
+        voxel_resolution=preset.voxel_resolution,
+        grid_extent_m=config.voxel_grid.extent_m,
+        camera_height_m=camera.height_m,
+        camera_tilt_deg=camera.tilt_deg,
+        camera_distance_m=camera.horizontal_distance_m,
+        full_colour_scale=camera.colour_scale,
+    )
+    spec = BuildSpec(
+        out_dir=str(args.out),
+        source=args.source,
+        categories=tuple(args.categories),
+        shapes_per_category=args.shapes_per_category,
+        views=args.views,
+        seed=args.seed,
+        recipe=recipe,
+    )
+    manifest = build_dataset(spec, workers=args.workers)
+    views = sum(shard["views"] for shard in manifest["shards"])
+    print(f"{len(manifest['shards'])} shards, {views} views in {args.out}")
+    return 0
+
+
+def train_network(args: argparse.Namespace) -> int:
+    from models.prior.training import TrainConfig, train
+
+    config = TrainConfig(
+        stage=args.stage,
+        data_dir=str(args.data),
+        out_dir=str(args.out),
+        preset=args.preset,
+        epochs=args.epochs,
+        batch_size=args.batch_size,
+        learning_rate=args.lr,
+        max_minutes=args.max_minutes,
+        seed=args.seed,
+        init_weights=args.init,
+        sketch_weights=getattr(args, "sketch_weights", None),
+        positive_weight=getattr(args, "positive_weight", 1.0),
+        sensor_depth_prob=getattr(args, "sensor_depth_prob", 0.5),
+        augment=not args.no_augment,
+        threads=args.threads,
+    )
+    print_json(train(config))
+    return 0
+
+
+def calibrate_shape(args: argparse.Namespace) -> int:
+    import torch
+
+    from models.metrics import voxel_iou
+    from models.prior.dataset import SketchVoxelDataset, split_by_shape
+    from models.prior.networks import ShapeNet, SketchNet, get_preset
+    from models.prior.platt import fit_platt, fold_platt, iou_offset, predicted_logits
+    from models.prior.training import load_weights, save_weights
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    preset = get_preset(args.preset)
+    sketch, shape = SketchNet(preset), ShapeNet(preset)
+    load_weights(sketch, args.sketch_weights)
+    load_weights(shape, args.shape_weights)
+    dataset = SketchVoxelDataset(args.data)
+    train_idx, val_idx = split_by_shape(dataset, 0.05, args.seed)
+
+    def spread(indices: list[int]) -> list[int]:
+        step = max(1, len(indices) // args.samples)
+        return indices[::step][: args.samples]
+
+    logits, truth = predicted_logits(sketch, shape, dataset, spread(train_idx))
+    scale, platt_offset = fit_platt(logits, truth)
+    offset = iou_offset(logits, truth, scale, platt_offset)
+    del logits, truth
+    val_logits, val_truth = predicted_logits(sketch, shape, dataset, spread(val_idx))
+    result = {
+        "scale": scale,
+        "platt_offset": platt_offset,
+        "offset": offset,
+        "val_views": len(val_truth),
+        "val_iou_before": voxel_iou(torch.sigmoid(val_logits), val_truth),
+        "val_iou_after": voxel_iou(torch.sigmoid(scale * val_logits + offset), val_truth),
+    }
+    fold_platt(shape, scale, offset)
+    save_weights(shape, "shape", args.preset, args.out)
+    print_json(result, None)
+    return 0
+
+
+def _bench_camera(config):
+    from models.prior.evaluation import BenchCamera
+    from models.render import CameraIntrinsics
+
+    camera = config.cameras.rgbd
+    return BenchCamera(
+        intrinsics=CameraIntrinsics.kinect_v2_colour(camera.colour_scale),
+        pose_world_camera=camera.pose_world_camera(),
+        object_albedo_rgb=config.sim.object_albedo_rgb,
+        table_size_m=config.sim.table_size_m,
+    )
+
+
+def eval_prior(args: argparse.Namespace) -> int:
+    from models.prior.evaluation import EvalObject, evaluate_prior, held_out_objects
+    from models.prior.shape_prior import ShapePrior
+    from models.shapes import load_mesh_file
+
+    config = load_config(args.config)
+    models = dataclasses.replace(
+        config.models,
+        prior=args.prior or config.models.prior,
+        preset=args.preset or config.models.preset,
+        weights_dir=args.weights_dir or config.models.weights_dir,
+    )
+    prior = ShapePrior.from_config(models)
+    if args.objects:
+        objects = [
+            EvalObject(
+                path.stem,
+                "file",
+                load_mesh_file(path, up_axis=args.up_axis, fit_max_extent_m=args.fit_size),
+            )
+            for path in args.objects
+        ]
+    else:
+        objects = held_out_objects(args.categories, args.shapes_per_category)
+    result = evaluate_prior(
+        prior,
+        objects,
+        _bench_camera(config),
+        views=args.views,
+        input_mode=args.input,
+        seed=args.seed,
+    )
+    print_json(result, args.json)
+    return 0
+
+
+def bench_prior(args: argparse.Namespace) -> int:
+    from controller.benchmarks.prior import benchmark_prior
+
+    config = load_config(None)
+    print_json(benchmark_prior(_bench_camera(config), repeats=args.repeats), args.json)
+    return 0

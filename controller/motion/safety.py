@@ -1,0 +1,184 @@
+"""Safety checks every commanded motion passes: small pure functions, tested directly.
+
+A check raises ``SafetyViolation`` (a ``MotionRejectedError``) naming the limit and the value, so
+a rejected motion is an explainable error, not a fault: nothing moved.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from controller.config import LimitsConfig
+from drivers.base import MotionRejectedError
+from drivers.tool import ToolBox, ToolModel
+from drivers.ur5.kinematics import inverse_kinematics
+from models.geometry import invert_transform, transform_points
+
+NEAR_PARTS_CLEARANCE_FRACTION = 0.25
+"""``near_parts`` keep this fraction of ``shape_clearance_m`` from where the object may be."""
+
+
+class SafetyViolation(MotionRejectedError):
+    """A planned pose or command breaks a configured limit."""
+
+
+@dataclass(frozen=True)
+class Obstacles:
+    """What the tool must keep clear of, in the world frame: the table top at z = 0 and the
+    current shape estimate as points (voxel centres, metres) at two levels of belief:
+    ``occupied_points_world`` (v > 0.5, the estimate itself) and ``possible_points_world`` (a
+    lower probability: where the object may still be, as the estimate can be too small; the
+    occupied points when not given)."""
+
+    occupied_points_world: NDArray[np.float64]
+    possible_points_world: NDArray[np.float64] | None = None
+
+    @classmethod
+    def none(cls) -> Obstacles:
+        return cls(np.zeros((0, 3)))
+
+    @property
+    def possible(self) -> NDArray[np.float64]:
+        points = self.possible_points_world
+        return self.occupied_points_world if points is None else points
+
+    @cached_property
+    def _occupied_tree(self) -> cKDTree:
+        return cKDTree(self.occupied_points_world)
+
+    @cached_property
+    def _possible_tree(self) -> cKDTree:
+        return cKDTree(self.possible)
+
+    def near(
+        self, centre_world: NDArray[np.float64], radius_m: float, *, possible: bool = False
+    ) -> NDArray[np.float64]:
+        """The occupied (or possible) points within ``radius_m`` of a point (a cheap
+        pre-filter)."""
+        points = self.possible if possible else self.occupied_points_world
+        if len(points) == 0:
+            return points
+        tree = self._possible_tree if possible else self._occupied_tree
+        return points[tree.query_ball_point(centre_world, radius_m)]
+
+
+def check_speed(speed_m_s: float, limit_m_s: float, *, what: str = "TCP speed") -> None:
+    if not 0.0 < speed_m_s <= limit_m_s:
+        raise SafetyViolation(f"{what} {speed_m_s} m/s outside (0, {limit_m_s}] m/s")
+
+
+def check_force(force_n: float, limits: LimitsConfig) -> None:
+    """Raise when a measured force means a collision rather than a touch."""
+    if force_n > limits.max_force_n:
+        raise SafetyViolation(f"force {force_n:.1f} N over the limit {limits.max_force_n} N")
+
+
+def check_workspace(pose_world_tcp: NDArray[np.float64], limits: LimitsConfig) -> None:
+    """The TCP (flange) position must lie in the configured workspace box."""
+    position = pose_world_tcp[:3, 3]
+    low, high = np.asarray(limits.workspace_min_world), np.asarray(limits.workspace_max_world)
+    if np.any(position < low) or np.any(position > high):
+        raise SafetyViolation(
+            f"TCP {np.round(position, 3).tolist()} m outside the workspace box "
+            f"{list(limits.workspace_min_world)}..{list(limits.workspace_max_world)}"
+        )
+
+
+def check_reachable(
+    pose_world_tcp: NDArray[np.float64],
+    pose_world_base: NDArray[np.float64],
+    joints_near_rad: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """Joint solution (rad) nearest the given joints, or SafetyViolation when out of reach."""
+    joints = inverse_kinematics(invert_transform(pose_world_base) @ pose_world_tcp, joints_near_rad)
+    if joints is None:
+        position = np.round(pose_world_tcp[:3, 3], 3).tolist()
+        raise SafetyViolation(f"pose at {position} m is out of the arm's reach (no IK solution)")
+    return joints
+
+
+def check_clearance(
+    pose_world_tcp: NDArray[np.float64],
+    width_m: float,
+    tool: ToolModel,
+    obstacles: Obstacles,
+    limits: LimitsConfig,
+    *,
+    exempt_parts: Sequence[str] = (),
+    near_parts: Sequence[str] = (),
+) -> None:
+    """Every rigid tool part keeps ``table_clearance_m`` above the table and
+    ``shape_clearance_m`` from where the object may be (``Obstacles.possible``), except on the
+    last stretch of an approach, where the sensor must come close to the surface it is about
+    to touch: ``near_parts`` keep half the margin, ``exempt_parts`` (the part carrying the
+    gel) may come up to the estimate itself."""
+    for box in tool.rigid_boxes(width_m):
+        pose_world_box = pose_world_tcp @ box.pose_tcp_box
+        lowest_m = _lowest_point_z(pose_world_box, box)
+        if lowest_m < limits.table_clearance_m:
+            raise SafetyViolation(
+                f"{box.name} would be {lowest_m * 1e3:.1f} mm above the table, "
+                f"clearance is {limits.table_clearance_m * 1e3:.0f} mm"
+            )
+        exempt = box.name in exempt_parts
+        clearance = 0.0 if exempt else limits.shape_clearance_m
+        if box.name in near_parts:
+            clearance = NEAR_PARTS_CLEARANCE_FRACTION * limits.shape_clearance_m
+        reach = float(np.linalg.norm(box.half_extents_m)) + clearance
+        nearby = obstacles.near(pose_world_box[:3, 3], reach, possible=not exempt)
+        if _box_near_points(pose_world_box, box, nearby, clearance):
+            where = "the shape estimate" if exempt else "where the object may be"
+            raise SafetyViolation(
+                f"{box.name} would come within {clearance * 1e3:.0f} mm of {where}"
+            )
+
+
+def check_pose(
+    pose_world_tcp: NDArray[np.float64],
+    width_m: float,
+    *,
+    tool: ToolModel,
+    obstacles: Obstacles,
+    limits: LimitsConfig,
+    pose_world_base: NDArray[np.float64],
+    joints_near_rad: NDArray[np.float64],
+    exempt_parts: Sequence[str] = (),
+    near_parts: Sequence[str] = (),
+) -> NDArray[np.float64]:
+    """All pose checks (workspace, reach, clearance); returns the joint solution."""
+    check_workspace(pose_world_tcp, limits)
+    joints = check_reachable(pose_world_tcp, pose_world_base, joints_near_rad)
+    check_clearance(
+        pose_world_tcp,
+        width_m,
+        tool,
+        obstacles,
+        limits,
+        exempt_parts=exempt_parts,
+        near_parts=near_parts,
+    )
+    return joints
+
+
+def _lowest_point_z(pose_world_box: NDArray[np.float64], box: ToolBox) -> float:
+    # The lowest point of a box is the corner whose offsets all point down: |R[2,:]| . half.
+    return float(pose_world_box[2, 3] - np.abs(pose_world_box[2, :3]) @ box.half_extents_m)
+
+
+def _box_near_points(
+    pose_world_box: NDArray[np.float64],
+    box: ToolBox,
+    points_world: NDArray[np.float64],
+    clearance_m: float,
+) -> bool:
+    if len(points_world) == 0:
+        return False
+    points_box = transform_points(invert_transform(pose_world_box), points_world)
+    outside = np.maximum(np.abs(points_box) - box.half_extents_m, 0.0)
+    return bool(np.any(np.linalg.norm(outside, axis=1) <= clearance_m))

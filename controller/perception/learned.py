@@ -1,0 +1,309 @@
+"""The paper's perception, assembled for the controller (implements ``Perception``).
+
+reconstruct: the shape prior (2.5D sketches -> voxels through a 200-d latent) on the camera frame.
+select: the active policy (least summed confidence |v - 0.5| over a sensor window, yaws every 90
+and pitches every 10 degrees) on the estimate with the touches' measurements written in, or the
+random policy; the first candidate the motion planner accepts. interpret: GelSight height map ->
+contact points -> voxel constraints along every ray of the pad (or the emptied sweep of a miss
+or a force stop without imprint). refine: the latent updated by the touch loss over all touches
+so far (threshold form, anchored to the vision latent: ``[models]`` config and
+docs/explore.md), the measurements then written in; or the Direct Edit baseline on the vision
+estimate.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from controller.config import Config
+from controller.messaging import ExploreRequest
+from controller.perception.protocol import (
+    ShapeEstimate,
+    TouchMeasurement,
+    TouchOutcome,
+    TouchTarget,
+)
+from drivers.base import RGBDFrame
+from drivers.factory import Devices
+from models.geometry import make_transform
+from models.prior.networks import LATENT_DIM
+from models.prior.shape_prior import ShapePrior
+from models.tactile.lut import (
+    GelSightCalibration,
+    calibrate_datapack,
+    default_datapack_path,
+    load_datapack,
+)
+from models.tactile.reconstruction import TactileReconstructor, contact_geometry
+from models.touch.constraints import (
+    TouchResult,
+    VoxelConstraints,
+    free_pad_points,
+    pad_grid_world,
+    touch_constraints,
+)
+from models.touch.policy import (
+    above_table_filter,
+    all_of,
+    facing_surface_filter,
+    not_repeated_filter,
+    predicted_bounding_box_world,
+    random_touch,
+    touch_candidates,
+)
+from models.touch.refinement import direct_edit, refine_latent
+
+log = logging.getLogger(__name__)
+
+MAX_APPROACH_ANGLE_DEG = 45.0
+"""Approach within this angle of the predicted surface normal (the paper: along the normal).
+The gel's window protrudes far enough that the gel meets a face tilted up to ~50 degrees first
+(``drivers.tool``)."""
+CONTACT_STRIDE_PX = 8
+"""Every 8th pixel of the contact patch becomes a constraint ray (0.24 mm apart: far below a
+voxel, so no information is lost)."""
+FREE_RAY_SPACING_M = 0.002
+RANDOM_POLICY_TRIES = 50
+REPEAT_RADIUS_M = 0.005
+"""A target this close to an earlier one, approached from the same direction, is not chosen
+again: the earlier touch already answered what it could."""
+
+
+def load_calibration(config: Config) -> GelSightCalibration:
+    """The sensor's calibration file, or one built from the real presses shipped with taxim
+    (what the simulated GelSight's optics were fitted on)."""
+    if config.sensor.calibration_file:
+        return GelSightCalibration.load(config.sensor.calibration_file)
+    pack = load_datapack(default_datapack_path())
+    return calibrate_datapack(pack, list(range(len(pack.images_bgr))), source="taxim dataPack")
+
+
+class LearnedPerception:
+    """Prior + GelSight + constraints + policy + refinement for one robot."""
+
+    def __init__(
+        self,
+        config: Config,
+        *,
+        camera_position_world: np.ndarray,
+        calibration: GelSightCalibration,
+        priors: dict[str, ShapePrior] | None = None,
+        seed: int = 0,
+    ) -> None:
+        self.config = config
+        self.grid = config.voxel_grid.grid(tuple(camera_position_world))
+        self.calibration = calibration
+        self._priors = dict(priors or {})
+        self._priors_lock = threading.Lock()
+        self._rng = np.random.default_rng(seed)
+        self._reconstructors: dict[int, TactileReconstructor] = {}
+        sensor = config.sensor
+        self.pad_size_m = (sensor.pad_width_mm * 1e-3, sensor.pad_height_mm * 1e-3)
+
+    def prior(self, name: str) -> ShapePrior:
+        """A named prior, loaded once."""
+        with self._priors_lock:
+            if name not in self._priors:
+                models = self.config.models
+                self._priors[name] = ShapePrior.load(
+                    name,
+                    preset=models.preset,
+                    weights_dir=models.weights_dir or None,
+                    device=models.device,
+                )
+                self._priors[name].check_grid(self.grid)
+            return self._priors[name]
+
+    def warm_up(self, prior_name: str) -> None:
+        """Run one refinement step on a dummy touch: the first ``torch.optim.Adam`` of a process
+        imports ``torch._dynamo`` (~1.3 s here), which would otherwise land on the first touch."""
+        prior = self.prior(prior_name)
+        resolution = self.grid.resolution
+        dummy = VoxelConstraints.from_voxels(resolution, [(0, 0, 0)], np.zeros((0, 3)))
+        latent = torch.zeros(LATENT_DIM, device=prior.device)
+        refine_latent(
+            prior.decode, latent, dummy, iterations=1, loss=self.config.models.refine_loss
+        )
+
+    # --- Perception -----------------------------------------------------------------------------
+
+    def reconstruct(self, frame: RGBDFrame, request: ExploreRequest) -> ShapeEstimate:
+        prediction = self.prior(request.prior).predict(
+            frame.colour_rgb,
+            frame.intrinsics,
+            frame.pose_world_camera,
+            self.grid,
+            depth_m=frame.depth_m if request.input == "rgbd" else None,
+        )
+        return ShapeEstimate(
+            grid=self.grid,
+            probabilities=prediction.probabilities,
+            latent=prediction.latent,
+            sketches={
+                "depth_m": prediction.depth_m,
+                "normals": ((prediction.normals_camera + 1.0) * 127.5).astype(np.uint8),
+                "silhouette": (prediction.silhouette * 255).astype(np.uint8),
+            },
+            vision_probabilities=prediction.probabilities,
+            vision_latent=prediction.latent,
+        )
+
+    def select(
+        self,
+        estimate: ShapeEstimate,
+        request: ExploreRequest,
+        outcomes: list[TouchOutcome],
+        allowed: Callable[[TouchTarget], bool],
+    ) -> TouchTarget | None:
+        # What the touches measured is known: the policy sees it written into the estimate, so
+        # the windows they answered are confident and are not chosen again.
+        known = direct_edit(estimate.probabilities, self._constraints(outcomes))
+        feasible = all_of(
+            above_table_filter(
+                self.config.motion.approach_distance_m, self.config.limits.table_clearance_m
+            ),
+            facing_surface_filter(estimate.probabilities, self.grid, MAX_APPROACH_ANGLE_DEG),
+            not_repeated_filter(
+                [
+                    (o.measurement.target.target_world, o.measurement.target.direction_world)
+                    for o in outcomes
+                ],
+                REPEAT_RADIUS_M,
+            ),
+        )
+        if request.policy == "active":
+            for candidate in touch_candidates(known, self.grid, feasible):
+                target = TouchTarget(
+                    candidate.target_world, candidate.approach_direction_world, candidate.score
+                )
+                if allowed(target):
+                    return target
+            return None
+        box = predicted_bounding_box_world(estimate.probabilities, self.grid)
+        if box is None:
+            return None
+        for _ in range(RANDOM_POLICY_TRIES):
+            candidate = random_touch(box[0], box[1], self.grid, self._rng, feasible)
+            if candidate is None:
+                return None
+            target = TouchTarget(candidate.target_world, candidate.approach_direction_world)
+            if allowed(target):
+                return target
+        return None
+
+    def interpret(self, measurement: TouchMeasurement) -> TouchOutcome:
+        reconstruction = self._reconstructor(measurement).reconstruct(measurement.tactile.image_bgr)
+        pose_world_pad = measurement.pose_world_pad
+        direction = pose_world_pad[:3, 2]
+        start = measurement.pad_start_world
+        contact = None
+        if measurement.contact:
+            contact = contact_geometry(
+                reconstruction.height_mm,
+                reconstruction.contact_mask,
+                reconstruction.mm_per_px,
+                stride_px=CONTACT_STRIDE_PX,
+            )
+        if contact is not None:
+            points = contact.points_world_m(pose_world_pad)
+            free = free_pad_points(pose_world_pad, points, self.pad_size_m, FREE_RAY_SPACING_M)
+        else:
+            # A miss, or stopped by force with no imprint: a rigid part met the object first,
+            # or a face larger than the pad pressed the gel evenly (photometric stereo sees
+            # slopes, not uniform depth). Only the sweep up to the stop is known to be free.
+            points = np.zeros((0, 3))
+            free = np.zeros((0, 3))
+        # A stop right at the start can leave points behind the start plane (the gel sinks in):
+        # they tell nothing about the sweep.
+        points = points[(points - start) @ direction >= 0]
+        free = free[(free - start) @ direction >= 0]
+        if len(points):
+            touch = TouchResult.from_contact(points, direction, start, free)
+        else:
+            touch = self._sweep(measurement)
+        return TouchOutcome(
+            measurement=measurement,
+            contact_points_world=points,
+            height_map_mm=reconstruction.height_mm,
+            constraints=touch_constraints(touch, self.grid),
+        )
+
+    def refine(
+        self, estimate: ShapeEstimate, outcomes: list[TouchOutcome], request: ExploreRequest
+    ) -> ShapeEstimate:
+        return self.refine_with(estimate, self._constraints(outcomes), request)
+
+    def refine_with(
+        self, estimate: ShapeEstimate, constraints: VoxelConstraints, request: ExploreRequest
+    ) -> ShapeEstimate:
+        """:meth:`refine` from the voxel constraints of all touches so far (however measured)."""
+        if request.update == "direct" or estimate.latent is None:
+            probabilities = direct_edit(estimate.vision_probabilities, constraints)
+            return replace(estimate, probabilities=probabilities)
+        models = self.config.models
+        result = refine_latent(
+            self.prior(request.prior).decode,
+            torch.as_tensor(estimate.latent),
+            constraints,
+            learning_rate=models.refine_learning_rate,
+            iterations=models.refine_iterations_per_touch,
+            loss=models.refine_loss,
+            anchor_latent=(
+                None if estimate.vision_latent is None else torch.as_tensor(estimate.vision_latent)
+            ),
+            anchor_weight=models.refine_anchor_weight,
+        )
+        # The prior spreads the touches over the shape; what they measured is then written in,
+        # so the reported shape agrees with every contact and every free sweep.
+        probabilities = result.voxels.numpy().astype(np.float32)
+        if models.refine_write_measurements:
+            probabilities = direct_edit(probabilities, constraints)
+        return replace(estimate, probabilities=probabilities, latent=result.latent)
+
+    # --- helpers --------------------------------------------------------------------------------
+
+    def _constraints(self, outcomes: list[TouchOutcome]) -> VoxelConstraints:
+        """The voxel constraints of all touches so far."""
+        constraints = VoxelConstraints.none(self.grid.resolution)
+        for outcome in outcomes:
+            constraints = constraints.merged(outcome.constraints)
+        return constraints
+
+    def _reconstructor(self, measurement: TouchMeasurement) -> TactileReconstructor:
+        """One reconstructor per reference frame (its set-up cost is paid once a session)."""
+        key = id(measurement.reference)
+        if key not in self._reconstructors:
+            self._reconstructors = {
+                key: TactileReconstructor(self.calibration, measurement.reference.image_bgr)
+            }
+        return self._reconstructors[key]
+
+    def _sweep(self, measurement: TouchMeasurement) -> TouchResult:
+        """The pad's sweep from the approach start to where it stopped: all empty."""
+        end = measurement.pose_world_pad
+        start = make_transform(end[:3, :3], measurement.pad_start_world)
+        spacing = FREE_RAY_SPACING_M
+        return TouchResult.from_miss(
+            pad_grid_world(start, self.pad_size_m, spacing),
+            pad_grid_world(end, self.pad_size_m, spacing),
+        )
+
+
+def make_perception(config: Config, devices: Devices) -> LearnedPerception:
+    """The perception the service uses (``touchshape serve`` / ``explore``)."""
+    camera_position = config.cameras.rgbd.pose_world_camera()[:3, 3]
+    perception = LearnedPerception(
+        config,
+        camera_position_world=camera_position,
+        calibration=load_calibration(config),
+        seed=config.sim.seed,
+    )
+    # Loads the prior too: bad weights fail at start-up, not mid-session.
+    perception.warm_up(config.models.prior)
+    return perception

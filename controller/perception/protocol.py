@@ -1,0 +1,99 @@
+"""What the controller needs from perception, as a protocol: reconstruct a shape from an image,
+choose a touch, interpret a touch, refine the shape. ``controller.perception.learned`` implements it with
+the shape prior, the GelSight reconstruction, the touch constraints and the policy."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from controller.messaging import ExploreRequest
+from drivers.base import RGBDFrame, TactileFrame
+from models.geometry import VoxelGrid
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass
+class ShapeEstimate:
+    """Occupancy probabilities on the registered voxel grid, indexed [i, j, k] (see
+    docs/conventions.md), and what produced them."""
+
+    grid: VoxelGrid
+    probabilities: NDArray[np.float32]
+    latent: Any | None = None
+    """The prior's latent code (a torch tensor) when a prior made this estimate."""
+    sketches: dict[str, NDArray] = field(default_factory=dict)
+    vision_probabilities: NDArray[np.float32] | None = None
+    """The estimate from vision alone (what Direct Edit edits)."""
+    vision_latent: Any | None = None
+    """The prior's latent code from vision alone (what the refinement stays near)."""
+
+    def occupied_points_world(self, threshold: float = 0.5) -> FloatArray:
+        """Centres of the voxels whose probability is above ``threshold`` (world, metres)."""
+        occupied = np.argwhere(self.probabilities > threshold)
+        return self.grid.voxel_to_world(occupied + 0.5)
+
+
+@dataclass(frozen=True)
+class TouchTarget:
+    """A chosen touch: the point on the (predicted) surface and the approach direction."""
+
+    target_world: FloatArray
+    direction_world: FloatArray
+    score: float = 0.0
+
+
+@dataclass(frozen=True)
+class TouchMeasurement:
+    """What the robot measured on one touch, before interpretation."""
+
+    target: TouchTarget
+    contact: bool
+    tactile: TactileFrame
+    reference: TactileFrame
+    pose_world_pad: FloatArray
+    """Pad pose when the fingers stopped (contact) or at the end of their stroke (miss)."""
+    pad_start_world: FloatArray
+    """Pad centre where the approach began: the swept segment starts here."""
+    force_n: float
+
+
+@dataclass
+class TouchOutcome:
+    """An interpreted touch: contact points on the object or a swept empty segment."""
+
+    measurement: TouchMeasurement
+    contact_points_world: FloatArray
+    height_map_mm: NDArray[np.float32] | None
+    constraints: Any
+    """Whatever the refinement consumes (voxel constraints)."""
+
+    @property
+    def contact_point_world(self) -> FloatArray | None:
+        points = self.contact_points_world
+        return points.mean(axis=0) if len(points) else None
+
+
+class Perception(Protocol):
+    def reconstruct(self, frame: RGBDFrame, request: ExploreRequest) -> ShapeEstimate: ...
+
+    def select(
+        self,
+        estimate: ShapeEstimate,
+        request: ExploreRequest,
+        outcomes: list[TouchOutcome],
+        allowed: Callable[[TouchTarget], bool],
+    ) -> TouchTarget | None:
+        """The next touch among those ``allowed`` accepts; None when nothing is worth touching."""
+        ...
+
+    def interpret(self, measurement: TouchMeasurement) -> TouchOutcome: ...
+
+    def refine(
+        self, estimate: ShapeEstimate, outcomes: list[TouchOutcome], request: ExploreRequest
+    ) -> ShapeEstimate: ...

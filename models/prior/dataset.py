@@ -1,0 +1,508 @@
+"""Training data for the shape priors: rendered views of shapes with 2.5D sketches and voxels.
+
+Each view places one shape (procedural, the box family, or a ShapeNetCore-style mesh) on the bench
+table at the object point, yawed at random about the vertical axis, and renders it with the
+project's renderer (:func:`models.render.render`) through the *virtual camera* of
+:mod:`models.prior.virtual_camera`: the deployment Kinect pose (45.72 cm high, 30 deg tilt, 0.62 m away)
+with jitter, cropped around the registered voxel grid at the network's resolution. Backgrounds:
+1/3 white, 1/3 lit gradients with random coloured illumination, 1/3 random textures.
+Ground-truth voxels are in the controller's frame: the :class:`models.geometry.VoxelGrid` whose
+axes face the (jittered) camera, indexed [i, j, k], occupancy of each voxel centre.
+
+Determinism: shape ``n`` of category ``c`` is drawn from ``default_rng((c, seed + n))`` and its
+views from ``default_rng((c, seed + n, 1))``, independent of the worker count or order. Training
+data must use shape seeds below :data:`EVAL_SEED_START`; evaluation draws its held-out shapes from
+seeds at or above it.
+
+Shards (``shard_XXXXX.npz``, compressed) hold the views of a few shapes of one category;
+``manifest.json`` records the recipe and the finished shards. Building again skips finished
+shards, so an interrupted build resumes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import multiprocessing
+import os
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+from manifold3d import CrossSection, JoinType
+
+from models.geometry import VoxelGrid, axes_facing_camera, make_transform, rotation_about_axis
+from models.prior.virtual_camera import GridCrop, grid_crop
+from models.render import (
+    CameraIntrinsics,
+    Lighting,
+    Scene,
+    SceneObject,
+    apply_kinect_depth_noise,
+    look_at_pose,
+    make_table,
+    render,
+)
+from models.shapes import CATEGORIES, load_mesh_file, make_shape
+
+EVAL_SEED_START = 1_000_000
+"""Shape seeds >= this are held out for evaluation and never used for training data."""
+
+BOX_CATEGORY = "box"
+"""The box family (cereal, sugar, tea boxes...), used by the ``box`` prior."""
+
+ALL_CATEGORIES: tuple[str, ...] = (*CATEGORIES, BOX_CATEGORY)
+"""Category index = position here (the 14 paper categories, then the box family)."""
+
+BACKGROUNDS: tuple[str, ...] = ("white", "gradient", "texture")
+
+# ShapeNetCore synset ids of the paper's 14 categories.
+SHAPENET_SYNSETS: dict[str, str] = {
+    "02773838": "bag",
+    "02876657": "bottle",
+    "02880940": "bowl",
+    "02942699": "camera",
+    "02946921": "can",
+    "02954340": "cap",
+    "03085013": "keyboard",
+    "03261776": "earphone",
+    "03513137": "helmet",
+    "03593526": "jar",
+    "03624134": "knife",
+    "03642806": "laptop",
+    "03797390": "mug",
+    "04074963": "remote",
+}
+
+
+@dataclass(frozen=True)
+class ViewRecipe:
+    """How views are drawn: the deployment camera and its jitter (metres, degrees)."""
+
+    image_size: int = 128
+    voxel_resolution: int = 64
+    grid_extent_m: float = 0.26
+    camera_height_m: float = 0.4572
+    camera_tilt_deg: float = 30.0
+    camera_distance_m: float = 0.62
+    full_colour_scale: float = 0.5
+    """The deployment image: Kinect v2 colour intrinsics at this scale (the bench's default)."""
+    height_jitter_m: float = 0.04
+    tilt_jitter_deg: float = 4.0
+    distance_jitter_m: float = 0.06
+    shapenet_size_m: tuple[float, float] = (0.10, 0.20)
+    """Largest extent of a ShapeNet model after scaling (the files are normalised, unitless)."""
+
+
+@dataclass(frozen=True)
+class BuildSpec:
+    """What to build: categories x shapes x views from a source, with a seed."""
+
+    out_dir: str
+    source: str = "procedural"
+    categories: tuple[str, ...] = CATEGORIES
+    shapes_per_category: int = 40
+    views: int = 6
+    seed: int = 0
+    shapes_per_shard: int = 5
+    recipe: ViewRecipe = field(default_factory=ViewRecipe)
+
+
+# --- the box family -------------------------------------------------------------------------------
+
+
+def make_box_shape(rng: np.random.Generator) -> trimesh.Trimesh:
+    """A random box-like product (cuboid, rounded or tapered, sometimes with a lid), watertight.
+
+    Metres, bottom centre at the origin, z up; fits 22 cm tall and 20 cm wide like the library.
+    """
+    width = rng.uniform(0.04, 0.19)
+    depth = rng.uniform(0.03, min(0.15, width))
+    height = rng.uniform(0.04, 0.22)
+    radius = rng.uniform(0.0005, 0.2 * min(width, depth)) if rng.random() < 0.5 else 0.0005
+    section = CrossSection.square((width - 2 * radius, depth - 2 * radius), center=True).offset(
+        radius, JoinType.Round, circular_segments=16
+    )
+    taper = rng.uniform(0.75, 0.95) if rng.random() < 0.2 else 1.0
+    body = section.extrude(height, scale_top=(taper, taper))
+    if rng.random() < 0.25:  # a lid slightly wider than the box
+        lid_height = rng.uniform(0.01, 0.3 * height)
+        lip = rng.uniform(0.002, 0.006)
+        lid = CrossSection.square((width * taper + 2 * lip, depth * taper + 2 * lip), center=True)
+        body = body + lid.extrude(lid_height).translate((0, 0, height - lid_height))
+    mesh_data = body.to_mesh64()
+    mesh = trimesh.Trimesh(
+        np.asarray(mesh_data.vert_properties)[:, :3], np.asarray(mesh_data.tri_verts), process=False
+    )
+    low, high = mesh.bounds
+    mesh.vertices = mesh.vertices - [(low[0] + high[0]) / 2, (low[1] + high[1]) / 2, low[2]]
+    return mesh
+
+
+def procedural_shape(category: str, rng: np.random.Generator) -> trimesh.Trimesh:
+    """A random shape of one of :data:`ALL_CATEGORIES` (table frame, metres)."""
+    if category == BOX_CATEGORY:
+        return make_box_shape(rng)
+    return make_shape(category, rng)
+
+
+def shape_rngs(category_index: int, shape_seed: int) -> tuple[np.random.Generator, ...]:
+    """(shape rng, view rng) of one shape: the documented per-shape seeding."""
+    return (
+        np.random.default_rng((category_index, shape_seed)),
+        np.random.default_rng((category_index, shape_seed, 1)),
+    )
+
+
+def shapenet_models(root: Path) -> dict[str, list[Path]]:
+    """ShapeNetCore layout ``synset/model/models/model_normalized.obj`` -> {category: [paths]}.
+
+    Known synsets are named after the paper's categories; others keep their synset id.
+    """
+    found: dict[str, list[Path]] = {}
+    for path in sorted(root.glob("*/*/models/model_normalized.obj")):
+        synset = path.parents[2].name
+        found.setdefault(SHAPENET_SYNSETS.get(synset, synset), []).append(path)
+    if not found:
+        raise FileNotFoundError(f"no */*/models/model_normalized.obj under {root}")
+    return found
+
+
+# --- voxel ground truth ---------------------------------------------------------------------------
+
+
+def voxelize(mesh_world: trimesh.Trimesh, grid: VoxelGrid) -> np.ndarray:
+    """Occupancy (N, N, N) bool, indexed [i, j, k], of each voxel centre inside ``mesh_world``.
+
+    Watertight meshes use trimesh's ray-based inside test. Other meshes (user files with holes)
+    use a majority vote of ray parity along +x, +y and +z: one hole flips at most the rays
+    through it, which the other two directions outvote.
+    """
+    n = grid.resolution
+    centres = grid.voxel_centres_world().reshape(-1, 3)
+    low, high = mesh_world.bounds
+    pad = grid.voxel_size_m
+    candidates = np.flatnonzero(np.all((centres >= low - pad) & (centres <= high + pad), axis=1))
+    inside = np.zeros(n**3, dtype=bool)
+    if len(candidates):
+        points = centres[candidates]
+        if mesh_world.is_watertight:
+            inside[candidates] = mesh_world.contains(points)
+        else:
+            inside[candidates] = _parity_vote(mesh_world, points)
+    return inside.reshape(n, n, n)
+
+
+def _parity_vote(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
+    votes = np.zeros(len(points), dtype=int)
+    for axis in range(3):
+        direction = np.zeros(3)
+        direction[axis] = 1.0
+        directions = np.broadcast_to(direction, points.shape)
+        _, ray_index, _ = mesh.ray.intersects_location(points, directions, multiple_hits=True)
+        crossings = np.bincount(ray_index, minlength=len(points))
+        votes += crossings % 2
+    return votes >= 2
+
+
+# --- one view -------------------------------------------------------------------------------------
+
+
+def jittered_camera_pose(recipe: ViewRecipe, rng: np.random.Generator) -> np.ndarray:
+    """A deployment-like ``pose_world_camera``: height, tilt, distance jittered; looks along +x."""
+    height = recipe.camera_height_m + rng.uniform(-1, 1) * recipe.height_jitter_m
+    tilt = math.radians(recipe.camera_tilt_deg + rng.uniform(-1, 1) * recipe.tilt_jitter_deg)
+    distance = recipe.camera_distance_m + rng.uniform(-1, 1) * recipe.distance_jitter_m
+    eye = np.array([-distance, 0.0, height])
+    view = np.array([math.cos(tilt), 0.0, -math.sin(tilt)])
+    return look_at_pose(eye, eye + view)
+
+
+def registered_grid(recipe: ViewRecipe, pose_world_camera: np.ndarray) -> VoxelGrid:
+    """The controller's grid for this camera: on the object point, axes facing the camera."""
+    axes = axes_facing_camera(pose_world_camera[:3, 3])
+    return VoxelGrid(recipe.voxel_resolution, recipe.grid_extent_m, (0.0, 0.0, 0.0), axes)
+
+
+def view_crop(recipe: ViewRecipe, pose_world_camera: np.ndarray, grid: VoxelGrid) -> GridCrop:
+    """The network-resolution virtual camera for a view."""
+    full = CameraIntrinsics.kinect_v2_colour(recipe.full_colour_scale)
+    return grid_crop(full, pose_world_camera, grid, recipe.image_size)
+
+
+def random_texture(rng: np.random.Generator, size: int = 32) -> np.ndarray:
+    """A random (size, size, 3) texture in 0..1 (printed labels, patterns): blocky palette noise."""
+    palette = rng.uniform(0.1, 1.0, (3, 3))
+    cells = int(rng.choice((2, 4, 8, 16)))
+    index = rng.integers(0, 3, (cells, cells))
+    return np.kron(palette[index], np.ones((size // cells, size // cells, 1)))
+
+
+def render_view(
+    mesh: trimesh.Trimesh, recipe: ViewRecipe, rng: np.random.Generator
+) -> dict[str, np.ndarray]:
+    """One training view of ``mesh`` (table frame): arrays as stored in a shard (see module doc)."""
+    pose_world_camera = jittered_camera_pose(recipe, rng)
+    yaw = rng.uniform(0.0, 2.0 * math.pi)
+    mesh_world = mesh.copy()
+    mesh_world.apply_transform(make_transform(rotation_about_axis((0, 0, 1), yaw)))
+    background = BACKGROUNDS[int(rng.integers(len(BACKGROUNDS)))]
+    if background == "gradient" or (background == "texture" and rng.random() < 0.5):
+        lighting = Lighting.random(rng)
+    else:
+        lighting = Lighting.default()
+    albedo = tuple(rng.uniform(0.1, 0.95, 3).tolist())
+    texture = random_texture(rng) if rng.random() < 1 / 3 else None
+    table_albedo = tuple(rng.uniform(0.2, 0.9, 3).tolist())
+    table_size = (rng.uniform(0.6, 1.6), rng.uniform(0.5, 1.0))
+    table = make_table(
+        table_size, (rng.uniform(-0.1, 0.1), rng.uniform(-0.05, 0.05)), albedo_rgb=table_albedo
+    )
+    scene = Scene(
+        objects=[
+            SceneObject(
+                mesh_world,
+                albedo_rgb=albedo,
+                texture=texture,
+                texture_tile_m=rng.uniform(0.03, 0.15),
+            )
+        ],
+        table=table,
+    )
+
+    grid = registered_grid(recipe, pose_world_camera)
+    crop = view_crop(recipe, pose_world_camera, grid)
+    out = render(
+        scene, crop.intrinsics, pose_world_camera, lighting=lighting, background=background, rng=rng
+    )
+    sensor = apply_kinect_depth_noise(
+        out.depth_m, out.normals_camera, rng, intrinsics=crop.intrinsics
+    )
+    silhouette = out.silhouette
+    return {
+        "rgb": out.colour_rgb,
+        "nearness": np.where(silhouette, crop.nearness(out.depth_m), 0).astype(np.float16),
+        "sensor_nearness": crop.nearness(sensor).astype(np.float16),
+        "normals": np.round(out.normals_camera * 127 * silhouette[..., None]).astype(np.int8),
+        "silhouette": np.packbits(silhouette),
+        "voxels": np.packbits(voxelize(mesh_world, grid)),
+        "pose_world_camera": pose_world_camera.astype(np.float32),
+        "yaw_rad": np.float32(yaw),
+        "background": np.int8(BACKGROUNDS.index(background)),
+    }
+
+
+# --- shards ---------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ShardTask:
+    """Views of ``len(shape_seeds)`` shapes of one category, written to one shard file."""
+
+    index: int
+    category: str
+    shape_seeds: tuple[int, ...]
+    mesh_paths: tuple[str, ...]
+    """ShapeNet files for these shapes, or empty for procedural shapes."""
+
+
+def shard_path(out_dir: Path, index: int) -> Path:
+    return out_dir / f"shard_{index:05d}.npz"
+
+
+def plan_shards(spec: BuildSpec) -> list[ShardTask]:
+    """The deterministic list of shards for a build."""
+    if spec.seed < 0 or spec.seed + spec.shapes_per_category > EVAL_SEED_START:
+        raise ValueError(
+            f"training shape seeds must stay in [0, {EVAL_SEED_START}): seed {spec.seed} + "
+            f"{spec.shapes_per_category} shapes crosses into the held-out evaluation seeds"
+        )
+    tasks: list[ShardTask] = []
+    if spec.source == "procedural":
+        for category in spec.categories:
+            if category not in ALL_CATEGORIES:
+                raise ValueError(f"unknown category {category!r}; expected {ALL_CATEGORIES}")
+            seeds = [spec.seed + n for n in range(spec.shapes_per_category)]
+            for start in range(0, len(seeds), spec.shapes_per_shard):
+                chunk = tuple(seeds[start : start + spec.shapes_per_shard])
+                tasks.append(ShardTask(len(tasks), category, chunk, ()))
+        return tasks
+    models = shapenet_models(Path(spec.source))
+    for category, paths in models.items():
+        order = np.random.default_rng((spec.seed, len(paths))).permutation(len(paths))
+        chosen = [paths[i] for i in order[: spec.shapes_per_category]]
+        for start in range(0, len(chosen), spec.shapes_per_shard):
+            chunk = chosen[start : start + spec.shapes_per_shard]
+            seeds = tuple(spec.seed + start + n for n in range(len(chunk)))
+            tasks.append(ShardTask(len(tasks), category, seeds, tuple(str(p) for p in chunk)))
+    return tasks
+
+
+def build_shard(spec: BuildSpec, task: ShardTask) -> Path:
+    """Render one shard and write it atomically (temporary file, then rename)."""
+    category_index = ALL_CATEGORIES.index(task.category) if task.category in ALL_CATEGORIES else -1
+    rng_key = category_index if category_index >= 0 else sum(task.category.encode())
+    views: list[dict[str, np.ndarray]] = []
+    names: list[str] = []
+    for n, shape_seed in enumerate(task.shape_seeds):
+        shape_rng, view_rng = shape_rngs(rng_key, shape_seed)
+        if task.mesh_paths:
+            size = shape_rng.uniform(*spec.recipe.shapenet_size_m)
+            mesh = load_mesh_file(task.mesh_paths[n], up_axis="y", fit_max_extent_m=size)
+            names.append(Path(task.mesh_paths[n]).parents[1].name)
+        else:
+            mesh = procedural_shape(task.category, shape_rng)
+            names.append(f"{task.category}_{shape_seed}")
+        views.extend(render_view(mesh, spec.recipe, view_rng) for _ in range(spec.views))
+    arrays = {key: np.stack([view[key] for view in views]) for key in views[0]}
+    arrays["shape_index"] = np.repeat(np.arange(len(names)), spec.views)
+    arrays["names"] = np.array(names)
+    arrays["category"] = np.array(task.category)
+    path = shard_path(Path(spec.out_dir), task.index)
+    temporary = path.with_suffix(".tmp.npz")
+    np.savez_compressed(temporary, **arrays)
+    os.replace(temporary, path)
+    return path
+
+
+def _build_shard_star(args: tuple[BuildSpec, ShardTask]) -> int:
+    torch.set_num_threads(1)
+    build_shard(*args)
+    return args[1].index
+
+
+def manifest_path(out_dir: Path) -> Path:
+    return out_dir / "manifest.json"
+
+
+def build_dataset(spec: BuildSpec, *, workers: int = 2, progress: bool = True) -> dict:
+    """Build (or resume) a dataset; returns the manifest also written to ``manifest.json``."""
+    from tqdm import tqdm
+
+    out_dir = Path(spec.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tasks = plan_shards(spec)
+    recipe = {**asdict(spec), "categories": list(spec.categories)}
+    recipe.pop("out_dir")
+    existing = manifest_path(out_dir)
+    if existing.exists():
+        previous = json.loads(existing.read_text())
+        if previous["recipe"] != json.loads(json.dumps(recipe)):
+            raise ValueError(f"{out_dir} holds a dataset with another recipe; use a new --out")
+    todo = [task for task in tasks if not shard_path(out_dir, task.index).exists()]
+    manifest = {
+        "format": "touchshape-prior-data/1",
+        "recipe": recipe,
+        "seeding": "shape n of category c: default_rng((c, seed + n)); its views: "
+        "default_rng((c, seed + n, 1)); c = index in ALL_CATEGORIES",
+        "eval_seed_start": EVAL_SEED_START,
+        "categories": list(dict.fromkeys(task.category for task in tasks)),
+        "shards": [
+            {
+                "file": shard_path(out_dir, t.index).name,
+                "category": t.category,
+                "shapes": len(t.shape_seeds),
+                "views": len(t.shape_seeds) * spec.views,
+            }
+            for t in tasks
+        ],
+        "complete": False,
+    }
+    existing.write_text(json.dumps(manifest, indent=2))
+    jobs = [(spec, task) for task in todo]
+    bar = tqdm(
+        total=len(tasks), initial=len(tasks) - len(todo), desc="shards", disable=not progress
+    )
+    if workers <= 1:
+        for job in jobs:
+            _build_shard_star(job)
+            bar.update()
+    else:
+        context = multiprocessing.get_context("spawn")
+        with context.Pool(workers) as pool:
+            for _ in pool.imap_unordered(_build_shard_star, jobs):
+                bar.update()
+    bar.close()
+    manifest["complete"] = True
+    existing.write_text(json.dumps(manifest, indent=2))
+    return manifest
+
+
+# --- torch dataset --------------------------------------------------------------------------------
+
+
+class SketchVoxelDataset(torch.utils.data.Dataset):
+    """All views of a built dataset, held in memory as stored (compact), decoded per item.
+
+    Items are dicts of tensors: ``rgb`` uint8 (3, S, S); ``nearness``, ``sensor_nearness``,
+    ``silhouette`` float (1, S, S); ``normals`` float (3, S, S); ``voxels`` float (N, N, N);
+    ``category`` int (index into :attr:`categories`).
+    """
+
+    def __init__(self, data_dir: str | Path, *, shards: Sequence[str] | None = None) -> None:
+        data_dir = Path(data_dir)
+        manifest = json.loads(manifest_path(data_dir).read_text())
+        recipe = manifest["recipe"]["recipe"]
+        self.image_size: int = recipe["image_size"]
+        self.voxel_resolution: int = recipe["voxel_resolution"]
+        self.categories: list[str] = manifest["categories"]
+        files = [s["file"] for s in manifest["shards"]] if shards is None else list(shards)
+        parts: dict[str, list[np.ndarray]] = {}
+        for name in files:
+            with np.load(data_dir / name) as shard:
+                count = len(shard["rgb"])
+                for key in (
+                    "rgb",
+                    "nearness",
+                    "sensor_nearness",
+                    "normals",
+                    "silhouette",
+                    "voxels",
+                ):
+                    parts.setdefault(key, []).append(shard[key])
+                category = self.categories.index(str(shard["category"]))
+                parts.setdefault("category", []).append(np.full(count, category))
+                names = shard["names"][shard["shape_index"]]
+                parts.setdefault("name", []).append(names)
+        self.arrays = {key: np.concatenate(value) for key, value in parts.items()}
+
+    def __len__(self) -> int:
+        return len(self.arrays["rgb"])
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        a = self.arrays
+        size, n = self.image_size, self.voxel_resolution
+        silhouette = np.unpackbits(a["silhouette"][index])[: size * size].reshape(1, size, size)
+        voxels = np.unpackbits(a["voxels"][index])[: n**3].reshape(n, n, n)
+        return {
+            "rgb": torch.from_numpy(a["rgb"][index]).permute(2, 0, 1).contiguous(),
+            "nearness": torch.from_numpy(a["nearness"][index].astype(np.float32))[None],
+            "sensor_nearness": torch.from_numpy(a["sensor_nearness"][index].astype(np.float32))[
+                None
+            ],
+            "normals": torch.from_numpy(a["normals"][index].astype(np.float32) / 127.0).permute(
+                2, 0, 1
+            ),
+            "silhouette": torch.from_numpy(silhouette.astype(np.float32)),
+            "voxels": torch.from_numpy(voxels.astype(np.float32)),
+            "category": torch.tensor(int(a["category"][index])),
+        }
+
+    def shape_names(self) -> np.ndarray:
+        """Name of the shape of each view (views of one shape share it)."""
+        return self.arrays["name"]
+
+
+def split_by_shape(
+    dataset: SketchVoxelDataset, val_fraction: float, seed: int = 0
+) -> tuple[list[int], list[int]]:
+    """Train / validation view indices with whole shapes held out for validation."""
+    names = dataset.shape_names()
+    unique = np.unique(names)
+    rng = np.random.default_rng(seed)
+    val_names = set(rng.choice(unique, max(1, round(val_fraction * len(unique))), replace=False))
+    is_val = np.array([name in val_names for name in names])
+    return np.flatnonzero(~is_val).tolist(), np.flatnonzero(is_val).tolist()

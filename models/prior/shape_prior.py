@@ -1,0 +1,223 @@
+"""Named shape priors: image (+ optional depth) -> voxel occupancy in the registered grid.
+
+A prior is a 2.5D sketch net and a shape net of one preset, loaded by name from a weights folder
+holding ``priors.json`` (the committed ``models/prior/weights/`` by default). The shape net's decoder is
+the learned prior that touch refinement optimises through :meth:`ShapePrior.decode`.
+
+Frames: the prediction is indexed [i, j, k] in the :class:`models.geometry.VoxelGrid` registered
+with the camera (``VoxelGridConfig.grid(camera_position)``: bottom centre on the object point, a_x
+horizontal toward the camera, a_z up), so ``x_w = R_v (x_v - o_v) + o_w`` places it in the world.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+import torch
+
+from models.geometry import VoxelGrid
+from models.prior.networks import (
+    NetworkPreset,
+    ShapeNet,
+    SketchNet,
+    get_preset,
+    normalise_rgb,
+    shape_input,
+)
+from models.prior.virtual_camera import GridCrop, crop_image, grid_crop
+from models.render import CameraIntrinsics
+
+DEFAULT_WEIGHTS_DIR = Path(__file__).parent / "weights"
+"""The weights shipped with the package (``priors.json`` lists them)."""
+
+
+class ModelsSettings(Protocol):
+    """What :meth:`ShapePrior.from_config` reads (``controller.config.ModelsConfig``)."""
+
+    prior: str
+    preset: str
+    weights_dir: str
+    device: str
+
+
+class PriorNotFoundError(ValueError):
+    """No prior of that name (and preset) in the weights folder."""
+
+
+@dataclass(frozen=True)
+class PriorSpec:
+    """One entry of ``priors.json``: file names relative to the weights folder."""
+
+    name: str
+    preset: str
+    sketch_weights: str
+    shape_weights: str
+    grid_extent_m: float
+    description: str = ""
+
+
+def available_priors(weights_dir: str | Path | None = None) -> dict[str, list[PriorSpec]]:
+    """Priors in a weights folder by name (one spec per preset trained)."""
+    folder = Path(weights_dir) if weights_dir else DEFAULT_WEIGHTS_DIR
+    index = folder / "priors.json"
+    if not index.exists():
+        return {}
+    priors: dict[str, list[PriorSpec]] = {}
+    for entry in json.loads(index.read_text())["priors"]:
+        priors.setdefault(entry["name"], []).append(PriorSpec(**entry))
+    return priors
+
+
+@dataclass
+class PriorPrediction:
+    """What a prior sees and predicts for one frame.
+
+    ``probabilities`` (N, N, N) float32 occupancy in ``grid`` indexed [i, j, k]; ``latent`` the
+    (200,) code; ``depth_m`` (metres, 0 = background), ``normals_camera`` (camera frame) and
+    ``silhouette`` (probability) are the predicted sketches on the crop's pixels (``crop``).
+    """
+
+    probabilities: np.ndarray
+    latent: torch.Tensor
+    depth_m: np.ndarray
+    normals_camera: np.ndarray
+    silhouette: np.ndarray
+    crop: GridCrop
+    grid: VoxelGrid
+
+
+class ShapePrior:
+    """A sketch net + shape net pair; :meth:`predict` runs image -> voxels."""
+
+    def __init__(
+        self,
+        sketch_net: SketchNet,
+        shape_net: ShapeNet,
+        *,
+        name: str = "untrained",
+        grid_extent_m: float = 0.26,
+        device: str | torch.device = "cpu",
+    ) -> None:
+        self.name = name
+        self.preset: NetworkPreset = shape_net.preset
+        self.grid_extent_m = grid_extent_m
+        self.device = torch.device(device)
+        self.sketch_net = sketch_net.to(self.device).eval()
+        self.shape_net = shape_net.to(self.device).eval()
+
+    @classmethod
+    def load(
+        cls,
+        name: str = "general",
+        *,
+        preset: str = "cpu",
+        weights_dir: str | Path | None = None,
+        device: str = "cpu",
+    ) -> ShapePrior:
+        """The prior ``name`` of ``preset`` from ``weights_dir`` (default: shipped weights).
+
+        Raises:
+            PriorNotFoundError: unknown name or preset; the message lists what is available.
+        """
+        from models.prior.training import load_weights
+
+        folder = Path(weights_dir) if weights_dir else DEFAULT_WEIGHTS_DIR
+        priors = available_priors(folder)
+        listing = (
+            ", ".join(
+                f"{n} ({'/'.join(s.preset for s in specs)})" for n, specs in sorted(priors.items())
+            )
+            or "none"
+        )
+        specs = [spec for spec in priors.get(name, []) if spec.preset == preset]
+        if not specs:
+            raise PriorNotFoundError(
+                f"no shape prior {name!r} with preset {preset!r} in {folder}; available: {listing}"
+            )
+        spec = specs[0]
+        network_preset = get_preset(preset)
+        sketch, shape = SketchNet(network_preset), ShapeNet(network_preset)
+        load_weights(sketch, folder / spec.sketch_weights)
+        load_weights(shape, folder / spec.shape_weights)
+        return cls(sketch, shape, name=name, grid_extent_m=spec.grid_extent_m, device=device)
+
+    @classmethod
+    def from_config(cls, models: ModelsSettings) -> ShapePrior:
+        """The prior a config's ``[models]`` section names (``prior``, ``preset``,
+        ``weights_dir`` with "" = shipped weights, ``device``)."""
+        return cls.load(
+            models.prior.shape_prior,
+            preset=models.preset,
+            weights_dir=models.weights_dir or None,
+            device=models.device,
+        )
+
+    @classmethod
+    def untrained(cls, preset: str = "cpu", *, seed: int = 0) -> ShapePrior:
+        """Randomly initialised networks (for timing and tests)."""
+        torch.manual_seed(seed)
+        network_preset = get_preset(preset)
+        return cls(SketchNet(network_preset), ShapeNet(network_preset), name=f"untrained-{preset}")
+
+    def check_grid(self, grid: VoxelGrid) -> None:
+        """The grid must have the resolution and extent the prior was trained for."""
+        if grid.resolution != self.preset.voxel_resolution:
+            raise ValueError(
+                f"prior {self.name!r} ({self.preset.name} preset) predicts "
+                f"{self.preset.voxel_resolution}^3 voxels; the grid has {grid.resolution}^3"
+            )
+        if abs(grid.extent_m - self.grid_extent_m) > 1e-6:
+            raise ValueError(
+                f"prior {self.name!r} was trained for a {self.grid_extent_m} m grid, "
+                f"not {grid.extent_m} m"
+            )
+
+    @torch.no_grad()
+    def predict(
+        self,
+        colour_rgb: np.ndarray,
+        intrinsics: CameraIntrinsics,
+        pose_world_camera: np.ndarray,
+        grid: VoxelGrid,
+        *,
+        depth_m: np.ndarray | None = None,
+    ) -> PriorPrediction:
+        """Voxels from a full camera frame: (H, W, 3) uint8 RGB, its pinhole intrinsics and
+        ``pose_world_camera``; ``grid`` is the registered voxel grid. With ``depth_m`` (H, W
+        z-depth metres registered to the colour image, 0 = no return; RGB-D mode) the sensor
+        depth replaces the predicted depth wherever it returned."""
+        self.check_grid(grid)
+        crop = grid_crop(intrinsics, pose_world_camera, grid, self.preset.image_size)
+        rgb = torch.from_numpy(crop_image(colour_rgb, crop)).permute(2, 0, 1)[None]
+        sketches = self.sketch_net(normalise_rgb(rgb.to(self.device)))
+        silhouette = torch.sigmoid(sketches["silhouette_logits"])
+        mask = (silhouette > 0.5).float()
+        depth = sketches["depth"]
+        if depth_m is not None:
+            sensor = crop.nearness(crop_image(depth_m.astype(np.float32), crop, nearest=True))
+            sensor_t = torch.from_numpy(sensor)[None, None].to(self.device)
+            depth = torch.where(sensor_t > 0, sensor_t, depth)
+        latent = self.shape_net.encode(shape_input(depth, sketches["normals"], mask))
+        probabilities = self.shape_net.decode(latent)[0]
+        near = (depth * mask)[0, 0].cpu().numpy()
+        return PriorPrediction(
+            probabilities=probabilities.cpu().numpy().astype(np.float32),
+            latent=latent[0].cpu(),
+            depth_m=crop.depth_m(near),
+            normals_camera=(sketches["normals"] * mask)[0].permute(1, 2, 0).cpu().numpy(),
+            silhouette=silhouette[0, 0].cpu().numpy(),
+            crop=crop,
+            grid=grid,
+        )
+
+    def decode(self, latent: torch.Tensor) -> torch.Tensor:
+        """Latent (200,) or (B, 200) -> probabilities (N, N, N) or (B, N, N, N) in the grid
+        frame [i, j, k]; differentiable in the latent (the network is in eval mode and frozen
+        only by the caller's optimiser choice)."""
+        batch = latent.dim() == 1
+        probabilities = self.shape_net.decode(latent[None] if batch else latent)
+        return probabilities[0] if batch else probabilities

@@ -1,0 +1,383 @@
+"""Training of the 2.5D sketch net and the shape net, as in the paper.
+
+* Sketch net: Adam (lr 5e-4, betas 0.5 / 0.9), L2 losses on depth (nearness), normals and the
+  silhouette probability, summed; colour and light jitter (kornia) on the RGB input.
+* Shape net: SGD (lr 2e-2, momentum 0.9), binary cross-entropy on the voxels, trained on
+  ground-truth sketches (depth + normals masked by the silhouette). ``sensor_depth_prob`` of the
+  samples replace the depth by the simulated Kinect depth (holes filled from the clean depth), so
+  the RGB-D mode sees what it was trained on. Validation also runs on *predicted* sketches when a
+  sketch checkpoint is given.
+
+Checkpoints (``checkpoint.pt``) are written every ``checkpoint_minutes`` and at the end; a run
+resumes from one mid-epoch (the epoch's sample order is a function of seed and epoch). Metrics go
+to ``metrics.jsonl``. With ``torchrun`` (``WORLD_SIZE`` > 1) it trains with
+DistributedDataParallel: NCCL on GPUs, gloo on CPU; each rank takes every WORLD_SIZE-th sample.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Literal
+
+import torch
+import torch.distributed as dist
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from models.metrics import voxel_iou
+from models.prior.dataset import SketchVoxelDataset, split_by_shape
+from models.prior.networks import (
+    ShapeNet,
+    SketchNet,
+    get_preset,
+    normalise_rgb,
+    shape_input,
+)
+
+log = logging.getLogger(__name__)
+
+Stage = Literal["sketch", "shape"]
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run. Learning rates and momenta default to the paper's."""
+
+    stage: Stage
+    data_dir: str
+    out_dir: str
+    preset: str = "cpu"
+    epochs: int = 10
+    batch_size: int = 16
+    learning_rate: float | None = None
+    """None: the paper's (sketch 5e-4 Adam, shape 2e-2 SGD)."""
+    max_minutes: float | None = None
+    """Stop (with a checkpoint) after this many minutes of training steps (data loading
+    included, validation not); a resumed run counts on from its checkpoint."""
+    checkpoint_minutes: float = 5.0
+    val_fraction: float = 0.05
+    seed: int = 0
+    init_weights: str | None = None
+    """Start from these network weights (e.g. the general prior to fine-tune the box prior)."""
+    sketch_weights: str | None = None
+    """Shape stage: also validate on sketches predicted by these sketch-net weights."""
+    sensor_depth_prob: float = 0.5
+    positive_weight: float = 1.0
+    """Shape stage: BCE weight of occupied voxels (1 = the paper's plain BCE)."""
+    augment: bool = True
+    threads: int | None = None
+    max_val_samples: int = 512
+
+
+def paper_optimizer(stage: Stage, model: nn.Module, lr: float | None) -> torch.optim.Optimizer:
+    """The paper's optimiser for a stage."""
+    if stage == "sketch":
+        return torch.optim.Adam(model.parameters(), lr=lr or 5e-4, betas=(0.5, 0.9))
+    return torch.optim.SGD(model.parameters(), lr=lr or 2e-2, momentum=0.9)
+
+
+def build_model(stage: Stage, preset: str) -> nn.Module:
+    return SketchNet(get_preset(preset)) if stage == "sketch" else ShapeNet(get_preset(preset))
+
+
+def colour_light_jitter() -> nn.Module:
+    """Colour (brightness, contrast, saturation) and light (illuminant colour, gamma) jitter."""
+    import kornia.augmentation as K
+
+    return nn.Sequential(
+        K.ColorJiggle(0.3, 0.3, 0.3, 0.0, p=0.8),
+        K.RandomPlanckianJitter(mode="blackbody", p=0.5),
+        K.RandomGamma((0.7, 1.4), p=0.5),
+    )
+
+
+def sketch_loss(prediction: dict[str, Tensor], batch: dict[str, Tensor]) -> dict[str, Tensor]:
+    """The paper's L2 losses: depth (nearness), normals, silhouette probability; and their sum."""
+    losses = {
+        "depth": F.mse_loss(prediction["depth"], batch["nearness"]),
+        "normals": F.mse_loss(prediction["normals"], batch["normals"]),
+        "silhouette": F.mse_loss(
+            torch.sigmoid(prediction["silhouette_logits"]), batch["silhouette"]
+        ),
+    }
+    losses["total"] = losses["depth"] + losses["normals"] + losses["silhouette"]
+    return losses
+
+
+def ground_truth_shape_input(
+    batch: dict[str, Tensor],
+    sensor_depth_prob: float = 0.0,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """Shape-net input from ground-truth sketches; optionally sensor depth for some samples."""
+    depth = batch["nearness"]
+    if sensor_depth_prob > 0:
+        sensor = batch["sensor_nearness"]
+        filled = torch.where(sensor > 0, sensor, depth)
+        use = torch.rand(depth.shape[0], 1, 1, 1, generator=generator) < sensor_depth_prob
+        depth = torch.where(use, filled, depth)
+    return shape_input(depth, batch["normals"], batch["silhouette"])
+
+
+def predicted_shape_input(
+    prediction: dict[str, Tensor], sensor_nearness: Tensor | None = None
+) -> Tensor:
+    """Shape-net input from predicted sketches (silhouette > 0.5); RGB-D mode passes the sensor's
+    nearness, which replaces the predicted depth wherever the sensor returned."""
+    silhouette = (prediction["silhouette_logits"] > 0).float()
+    depth = prediction["depth"]
+    if sensor_nearness is not None:
+        depth = torch.where(sensor_nearness > 0, sensor_nearness, depth)
+    return shape_input(depth, prediction["normals"], silhouette)
+
+
+def shape_loss(logits: Tensor, voxels: Tensor, positive_weight: float = 1.0) -> Tensor:
+    """Binary cross-entropy over all voxels (``positive_weight`` > 1 up-weights occupied ones)."""
+    weight = None if positive_weight == 1.0 else torch.tensor(positive_weight)
+    return F.binary_cross_entropy_with_logits(logits, voxels, pos_weight=weight)
+
+
+def _collate(samples: list[dict[str, Tensor]]) -> dict[str, Tensor]:
+    return {key: torch.stack([s[key] for s in samples]) for key in samples[0]}
+
+
+def _batches(dataset: SketchVoxelDataset, indices: list[int], batch_size: int):
+    for start in range(0, len(indices) - batch_size + 1, batch_size):
+        yield _collate([dataset[i] for i in indices[start : start + batch_size]])
+
+
+def save_weights(model: nn.Module, stage: Stage, preset: str, path: str | Path) -> None:
+    """Network weights only, in float16 (half the size; inference runs in float32)."""
+    module = model.module if hasattr(model, "module") else model
+    state = {k: v.half() if v.is_floating_point() else v for k, v in module.state_dict().items()}
+    torch.save({"stage": stage, "preset": preset, "state_dict": state}, path)
+
+
+def load_weights(model: nn.Module, path: str | Path) -> dict:
+    """Load weights written by :func:`save_weights` (or a training checkpoint) into ``model``."""
+    blob = torch.load(path, map_location="cpu", weights_only=False)
+    state = blob["state_dict"] if "state_dict" in blob else blob["model"]
+    model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in state.items()})
+    return blob
+
+
+class _Distributed:
+    """Rank, world size and device from torchrun's environment (1 process without it)."""
+
+    def __init__(self) -> None:
+        self.world = int(os.environ.get("WORLD_SIZE", "1"))
+        self.rank = int(os.environ.get("RANK", "0"))
+        local = int(os.environ.get("LOCAL_RANK", "0"))
+        cuda = torch.cuda.is_available()
+        self.device = torch.device(f"cuda:{local}" if cuda else "cpu")
+        if self.world > 1:
+            if cuda:
+                torch.cuda.set_device(self.device)
+            dist.init_process_group("nccl" if cuda else "gloo")
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+    def mean(self, value: float) -> float:
+        if self.world == 1:
+            return value
+        tensor = torch.tensor([value], device=self.device)
+        dist.all_reduce(tensor)
+        return float(tensor) / self.world
+
+    def close(self) -> None:
+        if self.world > 1:
+            dist.destroy_process_group()
+
+
+def train(config: TrainConfig, *, progress: bool = True) -> dict:
+    """Run (or resume) a training run; returns the last validation metrics."""
+    from tqdm import tqdm
+
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    env = _Distributed()
+    out_dir = Path(config.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(config.seed)
+    dataset = SketchVoxelDataset(config.data_dir)
+    train_idx, val_idx = split_by_shape(dataset, config.val_fraction, config.seed)
+    val_idx = val_idx[: config.max_val_samples]
+
+    model = build_model(config.stage, config.preset)
+    if config.init_weights:
+        load_weights(model, config.init_weights)
+    model.to(env.device)
+    if env.world > 1:
+        if env.device.type == "cuda":
+            model = nn.SyncBatchNorm.convert_sync_batchnorm(model)
+        model = nn.parallel.DistributedDataParallel(model)
+    optimizer = paper_optimizer(config.stage, model, config.learning_rate)
+    augment = colour_light_jitter().to(env.device) if config.augment else None
+    sketch_net = None
+    if config.stage == "shape" and config.sketch_weights:
+        sketch_net = SketchNet(get_preset(config.preset))
+        load_weights(sketch_net, config.sketch_weights)
+        sketch_net.to(env.device).eval()
+
+    checkpoint = out_dir / "checkpoint.pt"
+    epoch, batch_in_epoch, step, trained_s = 0, 0, 0, 0.0
+    if checkpoint.exists():
+        state = torch.load(checkpoint, map_location=env.device, weights_only=False)
+        (model.module if env.world > 1 else model).load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        epoch, batch_in_epoch = state["epoch"], state["batch_in_epoch"]
+        step, trained_s = state["step"], state["trained_s"]
+        log.info("resumed from %s at epoch %d batch %d", checkpoint, epoch, batch_in_epoch)
+    metrics_file = out_dir / "metrics.jsonl"
+    if env.main:
+        (out_dir / "config.json").write_text(json.dumps(asdict(config), indent=2))
+
+    def save_checkpoint() -> None:
+        if not env.main:
+            return
+        core = model.module if env.world > 1 else model
+        torch.save(
+            {
+                "model": core.state_dict(),
+                "optimizer": optimizer.state_dict(),
+                "epoch": epoch,
+                "batch_in_epoch": batch_in_epoch,
+                "step": step,
+                "trained_s": trained_s,
+                "config": asdict(config),
+            },
+            checkpoint.with_suffix(".tmp"),
+        )
+        os.replace(checkpoint.with_suffix(".tmp"), checkpoint)
+
+    def write(record: dict) -> None:
+        if env.main:
+            with metrics_file.open("a") as handle:
+                handle.write(json.dumps(record) + "\n")
+
+    sample_noise = torch.Generator().manual_seed(config.seed + 7)
+    budget_s = None if config.max_minutes is None else 60.0 * config.max_minutes
+    last_checkpoint = time.monotonic()
+    validation: dict = {}
+    stopped = False
+    while epoch < config.epochs and not stopped:
+        order = torch.randperm(
+            len(train_idx), generator=torch.Generator().manual_seed(config.seed * 1000 + epoch)
+        ).tolist()
+        indices = [train_idx[i] for i in order][env.rank :: env.world]
+        batches_per_epoch = len(indices) // config.batch_size
+        model.train()
+        bar = tqdm(
+            total=batches_per_epoch,
+            initial=batch_in_epoch,
+            disable=not (progress and env.main),
+            desc=f"{config.stage} epoch {epoch}",
+        )
+        running = 0.0
+        start_index = batch_in_epoch * config.batch_size
+        tick = time.monotonic()
+        for batch in _batches(dataset, indices[start_index:], config.batch_size):
+            batch = {k: v.to(env.device) for k, v in batch.items()}
+            if config.stage == "sketch":
+                rgb = batch["rgb"].float() / 255.0
+                if augment is not None:
+                    with torch.no_grad():
+                        rgb = augment(rgb).clamp(0, 1)
+                losses = sketch_loss(model(normalise_rgb(rgb)), batch)
+                loss = losses["total"]
+            else:
+                inputs = ground_truth_shape_input(batch, config.sensor_depth_prob, sample_noise)
+                loss = shape_loss(model(inputs), batch["voxels"], config.positive_weight)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            step += 1
+            batch_in_epoch += 1
+            value = loss.item()
+            running = 0.9 * running + 0.1 * value if running else value
+            now = time.monotonic()
+            trained_s, tick = trained_s + now - tick, now
+            bar.update()
+            bar.set_postfix(loss=f"{running:.4f}")
+            if step % 25 == 0:
+                write(
+                    {
+                        "step": step,
+                        "epoch": epoch,
+                        "train_loss": env.mean(value),
+                        "trained_s": round(trained_s, 1),
+                    }
+                )
+            if budget_s is not None and trained_s >= budget_s:
+                stopped = True
+                break
+            if time.monotonic() - last_checkpoint > 60.0 * config.checkpoint_minutes:
+                save_checkpoint()
+                last_checkpoint = time.monotonic()
+        bar.close()
+        if not stopped:
+            epoch, batch_in_epoch = epoch + 1, 0
+        validation = evaluate(model, config, dataset, val_idx, env.device, sketch_net)
+        validation = {k: env.mean(v) for k, v in validation.items()}
+        write(
+            {
+                "step": step,
+                "epoch": epoch,
+                "trained_s": round(trained_s, 1),
+                "train_loss_ema": running,
+                **validation,
+            }
+        )
+        log.info("epoch %d step %d: %s", epoch, step, validation)
+        save_checkpoint()
+        last_checkpoint = time.monotonic()
+    if env.main:
+        save_weights(model, config.stage, config.preset, out_dir / f"{config.stage}.pt")
+    env.close()
+    return validation
+
+
+@torch.no_grad()
+def evaluate(
+    model: nn.Module,
+    config: TrainConfig,
+    dataset: SketchVoxelDataset,
+    indices: list[int],
+    device: torch.device,
+    sketch_net: SketchNet | None = None,
+) -> dict[str, float]:
+    """Validation losses (and voxel IoU at 0.5 for the shape stage) on held-out shapes."""
+    was_training = model.training
+    model.eval()
+    totals: dict[str, float] = {}
+    count = 0
+    for batch in _batches(dataset, indices, min(config.batch_size, len(indices))):
+        batch = {k: v.to(device) for k, v in batch.items()}
+        size = batch["rgb"].shape[0]
+        if config.stage == "sketch":
+            prediction = model(normalise_rgb(batch["rgb"]))
+            values = {f"val_{k}": float(v) for k, v in sketch_loss(prediction, batch).items()}
+            silhouette = (prediction["silhouette_logits"] > 0).float()
+            values["val_silhouette_iou"] = float(voxel_iou(silhouette, batch["silhouette"]))
+        else:
+            logits = model(ground_truth_shape_input(batch))
+            values = {
+                "val_loss": float(shape_loss(logits, batch["voxels"], config.positive_weight)),
+                "val_iou_gt_sketch": float(voxel_iou(torch.sigmoid(logits), batch["voxels"])),
+            }
+            if sketch_net is not None:
+                prediction = sketch_net(normalise_rgb(batch["rgb"]))
+                probs = torch.sigmoid(model(predicted_shape_input(prediction)))
+                values["val_iou_pred_sketch"] = float(voxel_iou(probs, batch["voxels"]))
+        for key, value in values.items():
+            totals[key] = totals.get(key, 0.0) + value * size
+        count += size
+    model.train(was_training)
+    return {key: value / max(count, 1) for key, value in totals.items()}
