@@ -241,7 +241,7 @@ def load_config(path: str | Path | None = None) -> Config:
 
 def config_from_dict(data: dict[str, Any], *, source: str = "config") -> Config:
     """Build the config tree from nested dicts (as parsed from TOML), checking every key."""
-    return _build(Config, data, prefix="", source=source)
+    return build_dataclass(Config, data, source=source)
 
 
 def config_to_dict(config: Any) -> dict[str, Any]:
@@ -285,49 +285,58 @@ def _toml_value(value: Any) -> str:
     return repr(value)
 
 
-def _build(cls: type, data: Any, *, prefix: str, source: str) -> Any:
+def build_dataclass(
+    cls: type, data: Any, *, prefix: str = "", source: str, error: type[ValueError] = ConfigError
+) -> Any:
+    """Build the frozen dataclass ``cls`` from plain data (parsed TOML or JSON), checking every
+    key against its type hints; ``error`` names the dotted key of anything unknown or wrong.
+    The one validator of configs and requests."""
     if not isinstance(data, dict):
-        raise ConfigError(f"{source}: [{prefix}] must be a table, got {type(data).__name__}")
+        where = f"[{prefix}]" if prefix else "the top level"
+        raise error(f"{source}: {where} must be a table, got {type(data).__name__}")
     hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
+    names = {f.name for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(data) - names)
     if unknown:
         key = f"{prefix}.{unknown[0]}" if prefix else unknown[0]
-        raise ConfigError(f"{source}: unknown key '{key}' (known: {', '.join(sorted(names))})")
+        raise error(f"{source}: unknown key '{key}' (known: {', '.join(sorted(names))})")
     values = {}
     for name, raw in data.items():
         key = f"{prefix}.{name}" if prefix else name
-        values[name] = _coerce(hints[name], raw, key=key, source=source)
+        values[name] = _coerce(hints[name], raw, key=key, source=source, error=error)
     try:
         return cls(**values)
-    except ValueError as error:
+    except ValueError as failure:
         where = prefix or "config"
-        raise ConfigError(f"{source}: bad value in [{where}]: {error}") from None
+        raise error(f"{source}: bad value in [{where}]: {failure}") from None
 
 
-def _coerce(hint: Any, raw: Any, *, key: str, source: str) -> Any:
-    def bad(expected: str) -> ConfigError:
-        return ConfigError(f"{source}: '{key}' must be {expected}, got {raw!r}")
+def _coerce(hint: Any, raw: Any, *, key: str, source: str, error: type[ValueError]) -> Any:
+    def bad(expected: str) -> ValueError:
+        return error(f"{source}: '{key}' must be {expected}, got {raw!r}")
+
+    def inner(inner_hint: Any, value: Any) -> Any:
+        return _coerce(inner_hint, value, key=key, source=source, error=error)
 
     origin = typing.get_origin(hint)
     if dataclasses.is_dataclass(hint):
-        return _build(hint, raw, prefix=key, source=source)
+        return build_dataclass(hint, raw, prefix=key, source=source, error=error)
     if origin is Literal:
         if raw not in typing.get_args(hint):
             raise bad("one of " + ", ".join(repr(a) for a in typing.get_args(hint)))
         return raw
     if origin in (typing.Union, types.UnionType):
         options = [a for a in typing.get_args(hint) if a is not type(None)]
-        return _coerce(options[0], raw, key=key, source=source)
+        return inner(options[0], raw)
     if origin is tuple:
         args = typing.get_args(hint)
         if not isinstance(raw, list):
             raise bad("an array")
         if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_coerce(args[0], v, key=key, source=source) for v in raw)
+            return tuple(inner(args[0], v) for v in raw)
         if len(raw) != len(args):
             raise bad(f"an array of {len(args)} values")
-        return tuple(_coerce(a, v, key=key, source=source) for a, v in zip(args, raw, strict=True))
+        return tuple(inner(a, v) for a, v in zip(args, raw, strict=True))
     if hint is bool:
         if not isinstance(raw, bool):
             raise bad("true or false")
@@ -344,4 +353,4 @@ def _coerce(hint: Any, raw: Any, *, key: str, source: str) -> Any:
         if not isinstance(raw, str):
             raise bad("a string")
         return raw
-    raise ConfigError(f"{source}: '{key}' has an unsupported type {hint!r}")  # a bug in Config
+    raise error(f"{source}: '{key}' has an unsupported type {hint!r}")  # a bug in the dataclass

@@ -13,9 +13,8 @@ import asyncio
 import json
 import logging
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Literal, get_args, get_type_hints
+from typing import Any
 
 import zenoh
 
@@ -24,54 +23,6 @@ from controller.config import MessagingConfig
 log = logging.getLogger(__name__)
 
 Handler = Callable[[bytes], Awaitable[dict[str, Any]]]
-
-
-class RequestError(ValueError):
-    """A request is not valid JSON, has unknown fields or out-of-range values."""
-
-
-@dataclass(frozen=True)
-class ExploreRequest:
-    """What a client may ask of an exploration session; every field is optional."""
-
-    max_touches: int = 10
-    policy: Literal["active", "random"] = "active"
-    update: Literal["prior", "direct"] = "prior"
-    input: Literal["rgb", "rgbd"] = "rgb"
-    prior: str = "general"
-
-    MAX_TOUCHES_RANGE = (1, 100)
-
-
-def parse_explore_request(payload: bytes, defaults: ExploreRequest) -> ExploreRequest:
-    """Validate an explore request body (JSON object, may be empty) over the defaults."""
-    if not payload.strip():
-        return defaults
-    try:
-        body = json.loads(payload)
-    except (UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise RequestError(f"request is not valid JSON: {error}") from None
-    if not isinstance(body, dict):
-        raise RequestError("request must be a JSON object")
-    hints = get_type_hints(ExploreRequest)
-    known = {f.name for f in fields(ExploreRequest)}
-    unknown = sorted(set(body) - known)
-    if unknown:
-        raise RequestError(f"unknown field(s) {unknown}; known: {sorted(known)}")
-    values: dict[str, Any] = {}
-    for name, value in body.items():
-        hint = hints[name]
-        if hint is int:
-            low, high = ExploreRequest.MAX_TOUCHES_RANGE
-            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-                raise RequestError(f"'{name}' must be an integer in {low}..{high}, got {value!r}")
-        elif hint is str:
-            if not isinstance(value, str) or not value:
-                raise RequestError(f"'{name}' must be a non-empty string, got {value!r}")
-        elif value not in get_args(hint):
-            raise RequestError(f"'{name}' must be one of {list(get_args(hint))}, got {value!r}")
-        values[name] = value
-    return ExploreRequest(**{**defaults.__dict__, **values})
 
 
 def zenoh_config(messaging: MessagingConfig) -> zenoh.Config:

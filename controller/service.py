@@ -21,15 +21,10 @@ import numpy as np
 import zenoh
 
 from controller.config import Config
-from controller.messaging import (
-    ExploreRequest,
-    RequestError,
-    ServiceApi,
-    parse_explore_request,
-    zenoh_config,
-)
+from controller.messaging import ServiceApi, zenoh_config
 from controller.perception.protocol import Perception, ShapeEstimate
 from controller.recording import SessionRecorder
+from controller.request import ExploreRequest, RequestError, parse_explore_request
 from controller.session import ExplorationSession, State
 from drivers.factory import Devices, make_devices
 

@@ -19,7 +19,6 @@ from typing import Any, TypeVar
 import numpy as np
 
 from controller.config import Config
-from controller.messaging import ExploreRequest
 from controller.motion.planner import MotionPlanner, TouchGeometry, Waypoint
 from controller.motion.safety import Obstacles, SafetyViolation, check_force, check_reachable
 from controller.perception.protocol import (
@@ -30,6 +29,7 @@ from controller.perception.protocol import (
     TouchTarget,
 )
 from controller.recording import SessionRecorder
+from controller.request import ExploreRequest
 from drivers.base import DeviceError, TactileFrame
 from drivers.factory import Devices
 from drivers.tool import ToolModel

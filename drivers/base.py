@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from models.render import CameraIntrinsics
+from models.camera import CameraIntrinsics
 
 
 class DeviceError(Exception):

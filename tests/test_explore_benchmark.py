@@ -23,9 +23,9 @@ from controller.benchmarks.explore import (
 )
 from controller.cli.main import build_parser
 from controller.config import Config
-from controller.messaging import ExploreRequest
 from controller.perception.learned import LearnedPerception, load_calibration
 from controller.perception.protocol import TouchTarget
+from controller.request import ExploreRequest
 from models.geometry import make_transform
 from models.prior.evaluation import EvalObject
 from models.prior.shape_prior import ShapePrior

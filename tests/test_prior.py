@@ -11,6 +11,7 @@ import torch
 import trimesh
 
 from drivers.config import CameraConfig
+from models.camera import CameraIntrinsics
 from models.geometry import VoxelGrid, axes_facing_camera
 from models.prior.dataset import registered_grid
 from models.prior.shape_prior import (
@@ -21,7 +22,7 @@ from models.prior.shape_prior import (
 )
 from models.prior.training import save_weights
 from models.prior.virtual_camera import crop_image, grid_crop
-from models.render import CameraIntrinsics, Scene, render
+from models.render import Scene, render
 from models.shapes import make_shape
 
 FULL = CameraIntrinsics.kinect_v2_colour(0.5)

@@ -8,14 +8,13 @@ import numpy as np
 import pytest
 import trimesh
 
+from models.camera import CameraIntrinsics, look_at_pose
 from models.render import (
-    CameraIntrinsics,
     DirectionalLight,
     Lighting,
     Scene,
     SceneObject,
     apply_kinect_depth_noise,
-    look_at_pose,
     make_table,
     render,
 )

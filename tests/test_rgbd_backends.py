@@ -27,7 +27,7 @@ from drivers.rgbd.kinect_v2 import KinectV2Camera
 from drivers.rgbd.kinect_v2_worker import resample_nearest
 from drivers.rgbd.realsense import RealSenseCamera
 from drivers.vendor import MissingSDKError
-from models.render import CameraIntrinsics
+from models.camera import CameraIntrinsics
 
 # --- RealSense ------------------------------------------------------------------------------------
 

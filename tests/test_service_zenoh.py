@@ -119,7 +119,7 @@ async def test_remote_session_end_to_end(served) -> None:
         (json.dumps({"max_touches": 101}), "1..100"),
         (json.dumps({"max_touches": "3"}), "integer"),
         (json.dumps({"policy": "greedy"}), "one of"),
-        (json.dumps({"touches": 3}), "unknown field"),
+        (json.dumps({"touches": 3}), "unknown key 'touches'"),
     ],
 )
 async def test_bad_requests_get_error_replies(served, body, message) -> None:

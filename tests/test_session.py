@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from controller.config import Config
-from controller.messaging import ExploreRequest
+from controller.request import ExploreRequest
 from controller.service import TouchshapeService
 from controller.session import TRANSITIONS, State
 from tests.fakes.perception import make_cylinder_perception

@@ -11,7 +11,7 @@ from pathlib import Path
 import trimesh
 
 from controller.config import Config
-from controller.messaging import ExploreRequest
+from controller.request import ExploreRequest
 from controller.service import TouchshapeService
 from tests.fakes.devices import StaleCamera, TimingOutGripper
 from tests.fakes.perception import CylinderPerception

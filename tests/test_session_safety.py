@@ -12,8 +12,8 @@ import pytest
 import trimesh
 
 from controller.config import Config
-from controller.messaging import ExploreRequest
 from controller.perception.protocol import ShapeEstimate
+from controller.request import ExploreRequest
 from controller.service import TouchshapeService
 from drivers.factory import Devices
 from models.geometry import make_transform

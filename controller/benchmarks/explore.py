@@ -58,7 +58,6 @@ import trimesh
 from numpy.typing import NDArray
 
 from controller.config import Config
-from controller.messaging import ExploreRequest
 from controller.motion.planner import pad_pose_facing, tcp_pose_for_pad
 from controller.perception.learned import REPEAT_RADIUS_M, LearnedPerception
 from controller.perception.protocol import (
@@ -67,6 +66,7 @@ from controller.perception.protocol import (
     TouchOutcome,
     TouchTarget,
 )
+from controller.request import ExploreRequest
 from drivers.base import RGBDFrame, TactileFrame
 from drivers.sim.camera import SimKinect
 from drivers.sim.gelsight import SimGelSight, gel_pad_spec

@@ -28,7 +28,8 @@ from typing import Any
 import zenoh
 
 from controller.config import Config, MessagingConfig
-from controller.messaging import ExploreRequest, zenoh_config
+from controller.messaging import zenoh_config
+from controller.request import ExploreRequest
 from controller.service import PerceptionFactory, TouchshapeService
 
 

@@ -19,7 +19,8 @@ from controller.config import Config
 from controller.motion.planner import pad_pose_facing
 from drivers.sim.gelsight import gel_pad_spec
 from drivers.sim.world import SimWorld
-from models.render import CameraIntrinsics, apply_kinect_depth_noise, render
+from models.camera import CameraIntrinsics
+from models.render import apply_kinect_depth_noise, render
 from models.tactile.lut import (
     GelSightCalibration,
     calibrate_datapack,

@@ -6,10 +6,11 @@ import json
 from pathlib import Path
 from typing import Any
 
+from models.files import write_json_atomically
+
 
 def print_json(result: Any, path: Path | None = None, *, shown: Any = None) -> None:
     """Print ``shown`` (default: ``result``) as indented JSON; write ``result`` to ``path``."""
     print(json.dumps(result if shown is None else shown, indent=2))
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(result, indent=2) + "\n")
+        write_json_atomically(path, result)

@@ -264,8 +264,8 @@ def calibrate_shape(args: argparse.Namespace) -> int:
 
 
 def _bench_camera(config):
+    from models.camera import CameraIntrinsics
     from models.prior.evaluation import BenchCamera
-    from models.render import CameraIntrinsics
 
     camera = config.cameras.rgbd
     return BenchCamera(

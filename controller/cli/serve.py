@@ -11,7 +11,7 @@ from pathlib import Path
 
 from controller.cli.output import print_json
 from controller.config import Config, load_config
-from controller.messaging import ExploreRequest
+from controller.request import ExploreRequest
 
 log = logging.getLogger(__name__)
 

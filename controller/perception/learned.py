@@ -22,13 +22,13 @@ import numpy as np
 import torch
 
 from controller.config import Config
-from controller.messaging import ExploreRequest
 from controller.perception.protocol import (
     ShapeEstimate,
     TouchMeasurement,
     TouchOutcome,
     TouchTarget,
 )
+from controller.request import ExploreRequest
 from drivers.base import RGBDFrame
 from drivers.factory import Devices
 from models.geometry import make_transform

@@ -11,7 +11,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from controller.messaging import ExploreRequest
+from controller.request import ExploreRequest
 from drivers.base import RGBDFrame, TactileFrame
 from models.geometry import VoxelGrid
 

@@ -37,7 +37,7 @@ from drivers.base import (
 from drivers.config import CameraConfig
 from drivers.latest_frame import LatestFrameReader
 from drivers.vendor import MissingSDKError
-from models.render import CameraIntrinsics
+from models.camera import CameraIntrinsics
 
 log = logging.getLogger(__name__)
 

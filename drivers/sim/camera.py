@@ -9,7 +9,8 @@ import numpy as np
 from drivers.base import DeviceNotConnectedError, RGBDCamera, RGBDFrame
 from drivers.config import CameraConfig
 from drivers.sim.world import SimWorld
-from models.render import CameraIntrinsics, RenderOutput, apply_kinect_depth_noise, render
+from models.camera import CameraIntrinsics
+from models.render import RenderOutput, apply_kinect_depth_noise, render
 
 
 class SimKinect(RGBDCamera):

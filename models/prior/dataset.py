@@ -34,18 +34,10 @@ import torch
 import trimesh
 from manifold3d import CrossSection, JoinType
 
+from models.camera import CameraIntrinsics, look_at_pose
 from models.geometry import VoxelGrid, axes_facing_camera, make_transform, rotation_about_axis
 from models.prior.virtual_camera import GridCrop, grid_crop
-from models.render import (
-    CameraIntrinsics,
-    Lighting,
-    Scene,
-    SceneObject,
-    apply_kinect_depth_noise,
-    look_at_pose,
-    make_table,
-    render,
-)
+from models.render import Lighting, Scene, SceneObject, apply_kinect_depth_noise, make_table, render
 from models.shapes import CATEGORIES, load_mesh_file, make_shape
 
 EVAL_SEED_START = 1_000_000

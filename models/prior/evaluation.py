@@ -19,6 +19,7 @@ from typing import Literal
 import numpy as np
 import trimesh
 
+from models.camera import CameraIntrinsics
 from models.geometry import VoxelGrid, axes_facing_camera, make_transform, rotation_about_axis
 from models.metrics import mesh_metrics, voxel_iou
 from models.prior.dataset import (
@@ -29,7 +30,7 @@ from models.prior.dataset import (
     voxelize,
 )
 from models.prior.shape_prior import ShapePrior
-from models.render import CameraIntrinsics, Scene, apply_kinect_depth_noise, render
+from models.render import Scene, apply_kinect_depth_noise, render
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,7 @@ from typing import Protocol
 import numpy as np
 import torch
 
+from models.camera import CameraIntrinsics
 from models.geometry import VoxelGrid
 from models.prior.networks import (
     NetworkPreset,
@@ -29,7 +30,6 @@ from models.prior.networks import (
     shape_input,
 )
 from models.prior.virtual_camera import GridCrop, crop_image, grid_crop
-from models.render import CameraIntrinsics
 
 DEFAULT_WEIGHTS_DIR = Path(__file__).parent / "weights"
 """The weights shipped with the package (``priors.json`` lists them)."""

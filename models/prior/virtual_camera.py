@@ -21,8 +21,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from models.camera import CameraIntrinsics
 from models.geometry import VoxelGrid, invert_transform, transform_points
-from models.render import CameraIntrinsics
 
 CROP_MARGIN = 0.04
 """Fraction of the grid box's projected size added on each side of the crop."""

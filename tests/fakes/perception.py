@@ -12,13 +12,13 @@ from collections.abc import Callable
 import numpy as np
 
 from controller.config import Config
-from controller.messaging import ExploreRequest
 from controller.perception.protocol import (
     ShapeEstimate,
     TouchMeasurement,
     TouchOutcome,
     TouchTarget,
 )
+from controller.request import ExploreRequest
 from drivers.base import RGBDFrame
 from drivers.factory import Devices
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.render import CameraIntrinsics
+from models.camera import CameraIntrinsics
 
 REC_W, REC_H, REC_FRAMES = 64, 48, 6
 REC_PERIOD_S = 0.03
