@@ -27,6 +27,7 @@ import rerun_bindings
 from numpy.typing import NDArray
 
 from drivers.base import RGBDFrame
+from models.files import write_json_atomically
 from models.geometry import VoxelGrid
 from models.metrics import voxel_surface_mesh
 
@@ -244,11 +245,7 @@ class SessionRecorder:
         return path
 
     def save_summary(self, summary: dict[str, Any]) -> Path:
-        path = self.artifacts_dir / "summary.json"
-        temporary = path.with_suffix(".json.tmp")
-        temporary.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-        temporary.replace(path)
-        return path
+        return write_json_atomically(self.artifacts_dir / "summary.json", summary)
 
     def close(self) -> None:
         """Flush and close the files; the recorder records nothing after this."""

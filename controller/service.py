@@ -25,7 +25,8 @@ from controller.messaging import ServiceApi, zenoh_config
 from controller.perception.protocol import Perception, ShapeEstimate
 from controller.recording import SessionRecorder
 from controller.request import ExploreRequest, RequestError, parse_explore_request
-from controller.session import ExplorationSession, State
+from controller.session import ExplorationSession
+from controller.states import State
 from drivers.factory import Devices, make_devices
 
 log = logging.getLogger(__name__)

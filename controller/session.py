@@ -12,8 +12,6 @@ import asyncio
 import logging
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass, field
-from enum import StrEnum
 from typing import Any, TypeVar
 
 import numpy as np
@@ -30,7 +28,9 @@ from controller.perception.protocol import (
 )
 from controller.recording import SessionRecorder
 from controller.request import ExploreRequest
-from drivers.base import DeviceError, TactileFrame
+from controller.session_times import SessionTimes
+from controller.states import STEP_TIMEOUT_S, TRANSITIONS, State
+from drivers.base import ArmState, DeviceError, TactileFrame
 from drivers.factory import Devices
 from drivers.tool import ToolModel
 from models.geometry import invert_transform, matrix_to_ur_pose, ur_pose_to_matrix
@@ -39,52 +39,6 @@ from models.metrics import mesh_metrics
 log = logging.getLogger(__name__)
 
 
-class State(StrEnum):
-    IDLE = "idle"
-    CAPTURE = "capture"
-    RECONSTRUCT = "reconstruct"
-    SELECT = "select"
-    APPROACH = "approach"
-    TOUCH = "touch"
-    REFINE = "refine"
-    DONE = "done"
-    FAULT = "fault"
-    ABORTED = "aborted"
-
-
-WORKING_STATES = (
-    State.CAPTURE,
-    State.RECONSTRUCT,
-    State.SELECT,
-    State.APPROACH,
-    State.TOUCH,
-    State.REFINE,
-)
-TRANSITIONS: dict[State, frozenset[State]] = {
-    State.IDLE: frozenset({State.CAPTURE}),
-    State.CAPTURE: frozenset({State.RECONSTRUCT}),
-    State.RECONSTRUCT: frozenset({State.SELECT}),
-    State.SELECT: frozenset({State.APPROACH, State.DONE}),
-    # Back to select when the planner refuses the motion to a target (it is then excluded).
-    State.APPROACH: frozenset({State.TOUCH, State.SELECT}),
-    State.TOUCH: frozenset({State.REFINE}),
-    State.REFINE: frozenset({State.SELECT, State.DONE}),
-    State.DONE: frozenset({State.IDLE}),
-    State.FAULT: frozenset({State.IDLE}),
-    State.ABORTED: frozenset({State.IDLE}),
-}
-for _working in WORKING_STATES:
-    TRANSITIONS[_working] |= {State.FAULT, State.ABORTED}
-
-STEP_TIMEOUT_S = {
-    State.CAPTURE: 30.0,
-    State.RECONSTRUCT: 60.0,
-    State.SELECT: 60.0,
-    State.APPROACH: 180.0,
-    State.TOUCH: 180.0,
-    State.REFINE: 60.0,
-}
-"""Wall-clock limit of each working state; past it the session faults."""
 CONVERGED_AFTER_UNCHANGED_TOUCHES = 2
 """The session ends early when this many touches in a row flipped no voxel across 0.5: the
 shape has stopped changing."""
@@ -98,13 +52,12 @@ before it has given the 1.5 mm that bring the rigid window behind it onto the ob
 APPROACH_FINE_STEP_M = 0.0001
 APPROACH_FINE_FORCE_FRACTION = 0.25
 """Once the force reaches this fraction of ``approach_contact_force_n`` the approach goes on in
-``APPROACH_FINE_STEP_M`` steps: a corner pressing the gel shows only ~0.15 N one coarse step
-before the window would reach it (measured on the sim bench, the camera's corners)."""
+``APPROACH_FINE_STEP_M`` steps: a corner pressing the gel shows only a fraction of the contact
+force one coarse step before the window behind the gel would reach it (docs/controller.md)."""
 POSSIBLE_OCCUPANCY = 0.1
 """Voxels above this probability are where the object may be: transits, and the tool parts that
 do not lead into a touch, keep their clearance from them. The vision estimate (v > 0.5) is too
-small in places: on the sim bench it misses the object's surface by up to 24 mm (the mug),
-v > 0.1 by at most 9 mm."""
+small in places, so a lower threshold is used (docs/controller.md)."""
 
 
 SCORES = ("chamfer_mm", "fscore_2mm", "fscore_5mm")
@@ -113,48 +66,6 @@ SCORES = ("chamfer_mm", "fscore_2mm", "fscore_5mm")
 
 class SessionFault(RuntimeError):
     """A session stopped on a fault; the message says which device or check."""
-
-
-@dataclass
-class SessionTimes:
-    """Where a session's wall-clock time goes. ``motion_s`` is the time spent awaiting the
-    devices (arm and finger motions, camera and GelSight reads, state queries); ``compute_s``
-    is all the rest of the session's own path: perception, planning, recording, publishing -
-    the time the robot waits for the computer. Work taken off that path (the simulation's
-    ground-truth scores) is not in it. Per touch: from the end of one refinement (or of the
-    reconstruction) to the end of the next refinement. On the simulated bench ``sim_clock``
-    reads the simulation's clock: ``per_touch_sim_s`` is the simulated time the devices took
-    (at real-time factor 1, what a real robot would take; ``motion_s`` also holds the
-    simulator's own computing)."""
-
-    sim_clock: Callable[[], float] | None = None
-    compute_s: float = 0.0
-    motion_s: float = 0.0
-    per_touch_compute_s: list[float] = field(default_factory=list)
-    per_touch_motion_s: list[float] = field(default_factory=list)
-    per_touch_sim_s: list[float] = field(default_factory=list)
-    _marks: list[tuple[float, float, float]] = field(default_factory=list)
-
-    def start(self) -> None:
-        self._marks = [(time.perf_counter(), self.motion_s, self._sim_now())]
-
-    def mark(self, *, touch: bool = True) -> None:
-        """Close a stretch of the session's accounting (a touch's when ``touch``) and open the
-        next one."""
-        now, sim_now = time.perf_counter(), self._sim_now()
-        started, motion_before, sim_before = self._marks[-1]
-        motion = self.motion_s - motion_before
-        compute = now - started - motion
-        self.compute_s += compute
-        if touch:
-            self.per_touch_compute_s.append(round(compute, 3))
-            self.per_touch_motion_s.append(round(motion, 3))
-            if self.sim_clock is not None:
-                self.per_touch_sim_s.append(round(sim_now - sim_before, 3))
-        self._marks.append((now, self.motion_s, sim_now))
-
-    def _sim_now(self) -> float:
-        return self.sim_clock() if self.sim_clock is not None else 0.0
 
 
 Publish = Callable[[str, dict[str, Any]], None]
@@ -306,7 +217,7 @@ class ExplorationSession:
         self._frame = await device(devices.camera.read())
         self.recorder.log_camera(self._frame)
         arm = await device(devices.arm.state())
-        pose_world_tcp = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
+        pose_world_tcp = self.pose_world_tcp(arm)
         self.recorder.log_robot(
             pose_world_tcp, pose_world_tcp @ self.tool.pose_tcp_pad(gripper_state.width_m)
         )
@@ -354,7 +265,7 @@ class ExplorationSession:
         target = self._target
         obstacles = self._obstacles()
         arm = await self._device(self.devices.arm.state())
-        pose_world_tcp = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
+        pose_world_tcp = self.pose_world_tcp(arm)
         touch = self.planner.touch_geometry(target.target_world, target.direction_world)
 
         def plan() -> tuple[list[Waypoint], Waypoint]:
@@ -400,7 +311,7 @@ class ExplorationSession:
         check_force_or_fault(gripper.force_n, self.config)
         tactile = await device(devices.tactile.read())
         arm = await device(devices.arm.state())
-        pose_world_tcp = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
+        pose_world_tcp = self.pose_world_tcp(arm)
         pose_world_pad = pose_world_tcp @ self.tool.pose_tcp_pad(gripper.width_m)
         self.recorder.log_robot(pose_world_tcp, pose_world_pad)
         # Back off: fingers to the approach width, then the arm out along the approach line.
@@ -482,7 +393,7 @@ class ExplorationSession:
         which a retreat then retraces to its start."""
         if new_motion:
             arm = await self._device(self.devices.arm.state())
-            self._move_start_world_tcp = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
+            self._move_start_world_tcp = self.pose_world_tcp(arm)
         pose_base_tcp = invert_transform(self.pose_world_base) @ waypoint.pose_world_tcp
         await self._device(
             self.devices.arm.move_linear(
@@ -501,7 +412,7 @@ class ExplorationSession:
         the pad touched on the way (the arm then stays there). A retreat from anywhere on the
         line goes back to its start."""
         arm = await self._device(self.devices.arm.state())
-        start = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
+        start = self.pose_world_tcp(arm)
         self._move_start_world_tcp = start
         end = waypoint.pose_world_tcp
         distance = float(np.linalg.norm(end[:3, 3] - start[:3, 3]))
@@ -546,7 +457,7 @@ class ExplorationSession:
                     force_limit_n=self.config.limits.max_force_n,
                     timeout_s=10.0,
                 )
-            pose_world_tcp = self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
+            pose_world_tcp = self.pose_world_tcp(arm)
             joints = arm.joints_rad
             for waypoint in self.planner.plan_retreat(
                 pose_world_tcp, joints, back_to_world_tcp=back_to
@@ -576,6 +487,10 @@ class ExplorationSession:
         self._transition(State.FAULT, message)
 
     # --- helpers --------------------------------------------------------------------------------
+
+    def pose_world_tcp(self, arm: ArmState) -> np.ndarray:
+        """The TCP pose of an arm state in the world frame (4x4)."""
+        return self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
 
     async def _compute(self, function: Callable[..., Any], *args: Any) -> Any:
         """Run perception or planning in a worker thread (the event loop stays responsive)."""

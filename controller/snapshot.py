@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ from controller.config import Config
 from controller.motion.planner import MotionPlanner
 from controller.motion.safety import Obstacles
 from drivers.factory import make_devices
+from models.files import write_folder_atomically
 from models.geometry import invert_transform, matrix_to_ur_pose
 
 log = logging.getLogger(__name__)
@@ -25,7 +27,7 @@ async def capture_snapshot(
     object_spec: str | None = None,
     up_axis: str | None = None,
     seed: int | None = None,
-) -> list[Path]:
+) -> dict[str, np.ndarray]:
     """Render the Kinect views and touch the object once on its robot-facing side.
 
     Returns RGB images by name: kinect_colour, kinect_depth (colourised), tactile and
@@ -129,11 +131,10 @@ def _colourise_depth(depth_m: np.ndarray) -> np.ndarray:
 
 
 def save_images(images: dict[str, np.ndarray], out_dir: Path) -> list[Path]:
-    """Write RGB images as ``<name>.png`` into ``out_dir``."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for name, image_rgb in images.items():
-        path = out_dir / f"{name}.png"
-        Image.fromarray(np.ascontiguousarray(image_rgb)).save(path)
-        paths.append(path)
-    return paths
+    """Write RGB images as ``<name>.png`` into ``out_dir``, all of them or none."""
+    writers = {f"{name}.png": partial(_save_png, image_rgb) for name, image_rgb in images.items()}
+    return write_folder_atomically(out_dir, writers)
+
+
+def _save_png(image_rgb: np.ndarray, path: Path) -> None:
+    Image.fromarray(np.ascontiguousarray(image_rgb)).save(path)

@@ -125,7 +125,7 @@ def register_points(points_from: ArrayLike, points_to: ArrayLike) -> Registratio
 
     This is the paper's world<-robot registration (``x_r = R_r x_w + T_r``): with exactly three
     calibrated points it reproduces the paper's construction; with more it is the least-squares
-    fit and the residuals tell the user how good the calibration is.
+    fit and the residuals tell the user how good the registration is.
     """
     source = np.asarray(points_from, dtype=float)
     target = np.asarray(points_to, dtype=float)
@@ -213,15 +213,6 @@ class VoxelGrid:
         index = np.arange(self.resolution) + 0.5
         grid = np.stack(np.meshgrid(index, index, index, indexing="ij"), axis=-1)
         return self.voxel_to_world(grid)
-
-    def with_axes_facing_camera(self, camera_position_world: ArrayLike) -> VoxelGrid:
-        """Same grid with axes from the camera's yaw (gravity-up, a_x toward the camera)."""
-        return VoxelGrid(
-            self.resolution,
-            self.extent_m,
-            self.origin_world,
-            axes_facing_camera(camera_position_world, self.origin_world),
-        )
 
 
 def axes_facing_camera(

@@ -13,8 +13,8 @@ frame, the prior's vision estimate, the voxelised truth):
   touch is a pad-sized range image: every ray of the pad, 1 mm apart, measures its first hit
   on the true mesh within ``IDEAL_DEPTH_M`` of the target, at a random surface point approached
   along the true normal. That is far more than a GelSight touch gives: the gel images only
-  where it is pressed, a few square millimetres at the contact force (2-12 occupied voxels per
-  touch on the bench against ~30 here), and the target is not known to lie on the surface.
+  where it is pressed, a few square millimetres at the contact force, and the target is not
+  known to lie on the surface.
 
 A touch policy or a refinement that lowers the error by more than the ideal touches do would
 have to know more than they measure; the latent fit bounds every latent refinement.
@@ -34,14 +34,16 @@ import numpy as np
 import torch
 import trimesh
 
-from controller.benchmarks.explore import ExploreSettings, ObjectRun
+from controller.benchmarks.explore import ExploreSettings, ObjectRun, with_threads
+from controller.benchmarks.explore_summary import change_pct
 from controller.config import Config
 from controller.motion.planner import pad_pose_facing
 from controller.perception.protocol import ShapeEstimate
 from models.geometry import VoxelGrid
 from models.prior.evaluation import EvalObject
+from models.prior.evaluation import _mean as finite_mean
 from models.prior.shape_prior import ShapePrior
-from models.tactile.lut import GelSightCalibration
+from models.tactile.lut import GelSightLUT
 from models.touch.constraints import (
     TouchResult,
     VoxelConstraints,
@@ -176,7 +178,7 @@ def ideal_touch_curve(
 
 def object_bounds(
     config: Config,
-    calibration: GelSightCalibration,
+    calibration: GelSightLUT,
     prior: ShapePrior,
     obj: EvalObject,
     settings: BoundsSettings,
@@ -227,38 +229,23 @@ def object_bounds(
         run.close()
 
 
-def _object_bounds_in_worker(threads: int, *args: Any) -> dict[str, Any]:
-    torch.set_num_threads(threads)
-    return object_bounds(*args)
-
-
-def _change_pct(before: float | None, after: float | None) -> float | None:
-    if before is None or after is None or not before > 0:
-        return None
-    return 100.0 * (after - before) / before
-
-
-def _mean(values: Sequence[float | None]) -> float | None:
-    finite = [v for v in values if v is not None and math.isfinite(v)]
-    return float(np.mean(finite)) if finite else None
-
-
 def summarise_bounds(rows: Sequence[dict[str, Any]], touch_counts: Sequence[int]) -> dict:
     """Means over objects; ``*_change_pct`` are means of the per-object changes from vision."""
     summary: dict[str, Any] = {
-        key: _mean([row[key] for row in rows]) for key in ("vision_mm", "floor_mm", "latent_fit_mm")
+        key: finite_mean([row[key] for row in rows])
+        for key in ("vision_mm", "floor_mm", "latent_fit_mm")
     }
     for key, name in (("floor_mm", "floor"), ("latent_fit_mm", "latent_fit")):
-        summary[f"{name}_change_pct"] = _mean(
-            [_change_pct(row["vision_mm"], row[key]) for row in rows]
+        summary[f"{name}_change_pct"] = finite_mean(
+            [change_pct(row["vision_mm"], row[key]) for row in rows]
         )
     for key in ("ideal_touches", "ideal_oracle_touches"):
         curves = [(row["vision_mm"], row[f"{key}_mm"]) for row in rows if f"{key}_mm" in row]
         if curves:
             summary[key] = {
                 str(count): {
-                    "chamfer_mm": _mean([curve[count] for _, curve in curves]),
-                    "change_pct": _mean([_change_pct(v, curve[count]) for v, curve in curves]),
+                    "chamfer_mm": finite_mean([curve[count] for _, curve in curves]),
+                    "change_pct": finite_mean([change_pct(v, curve[count]) for v, curve in curves]),
                 }
                 for count in touch_counts
             }
@@ -271,7 +258,7 @@ def run_bounds(
     settings: BoundsSettings,
     *,
     prior: ShapePrior,
-    calibration: GelSightCalibration,
+    calibration: GelSightLUT,
     workers: int = 1,
 ) -> dict[str, Any]:
     """The bounds JSON: per object ``vision_mm``, ``floor_mm``, ``latent_fit_mm``,
@@ -283,7 +270,7 @@ def run_bounds(
         context = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(workers, mp_context=context) as pool:
             futures = [
-                pool.submit(_object_bounds_in_worker, torch.get_num_threads(), *a) for a in args
+                pool.submit(with_threads, torch.get_num_threads(), object_bounds, *a) for a in args
             ]
             rows = [future.result() for future in futures]
     models = config.models

@@ -6,38 +6,19 @@ machine and its load).
 
 from __future__ import annotations
 
-import os
-import platform
-import statistics
-import time
-from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 import torch
 
+from controller.benchmarks.timing import machine, repeated
 from models.geometry import VoxelGrid, axes_facing_camera
 from models.prior.evaluation import BenchCamera
 from models.prior.networks import ShapeNet, SketchNet, get_preset, normalise_rgb, parameter_count
 from models.prior.shape_prior import DEFAULT_WEIGHTS_DIR, ShapePrior
 from models.prior.training import paper_optimizer, shape_loss, sketch_loss
+from models.procedural import make_shape
 from models.render import Scene, render
-from models.shapes import make_shape
-
-
-def _timed_ms(function: Callable[[], object], repeats: int) -> dict[str, float]:
-    """Median / min / max of ``repeats`` calls after one warm-up call, milliseconds."""
-    function()
-    samples = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        samples.append((time.perf_counter() - start) * 1e3)
-    return {
-        "median_ms": round(statistics.median(samples), 2),
-        "min_ms": round(min(samples), 2),
-        "max_ms": round(max(samples), 2),
-        "repeats": repeats,
-    }
 
 
 def _training_throughput(preset_name: str, batch: int, steps: int) -> dict[str, float]:
@@ -68,8 +49,8 @@ def _training_throughput(preset_name: str, batch: int, steps: int) -> dict[str, 
 
     result = {}
     for stage, step in (("sketch", sketch_step), ("shape", shape_step)):
-        timing = _timed_ms(step, steps)
-        result[f"{stage}_images_per_s"] = round(batch / (timing["median_ms"] / 1e3), 2)
+        median_s = repeated(step, steps).medians()["wall_s"]
+        result[f"{stage}_images_per_s"] = round(batch / median_s, 2)
     result["batch"] = batch
     return result
 
@@ -82,12 +63,7 @@ def benchmark_prior(camera: BenchCamera, *, repeats: int = 10) -> dict:
     axes = axes_facing_camera(camera.pose_world_camera[:3, 3])
     figures: dict = {
         "benchmark": "prior",
-        "machine": {
-            "cpu_count": os.cpu_count(),
-            "torch_threads": torch.get_num_threads(),
-            "processor": platform.processor() or platform.machine(),
-            "torch": torch.__version__,
-        },
+        "machine": machine(torch_threads=torch.get_num_threads(), torch=torch.__version__),
         "frame": [camera.intrinsics.width, camera.intrinsics.height],
         "presets": {},
     }
@@ -100,6 +76,10 @@ def benchmark_prior(camera: BenchCamera, *, repeats: int = 10) -> dict:
             weights = "untrained (random)"
         preset = prior.preset
         grid = VoxelGrid(preset.voxel_resolution, prior.grid_extent_m, (0.0, 0.0, 0.0), axes)
+        predict = partial(
+            prior.predict, frame.colour_rgb, camera.intrinsics, camera.pose_world_camera, grid
+        )
+        count = repeats if name == "cpu" else max(2, repeats // 4)
         entry = {
             "weights": weights,
             "image_size": preset.image_size,
@@ -109,22 +89,11 @@ def benchmark_prior(camera: BenchCamera, *, repeats: int = 10) -> dict:
             "float16_mb": round(
                 2 * (parameter_count(prior.sketch_net) + parameter_count(prior.shape_net)) / 1e6, 2
             ),
-            "rgb_to_voxels": _timed_ms(
-                lambda p=prior, g=grid: p.predict(
-                    frame.colour_rgb, camera.intrinsics, camera.pose_world_camera, g
-                ),
-                repeats if name == "cpu" else max(2, repeats // 4),
-            ),
-            "rgbd_to_voxels": _timed_ms(
-                lambda p=prior, g=grid: p.predict(
-                    frame.colour_rgb,
-                    camera.intrinsics,
-                    camera.pose_world_camera,
-                    g,
-                    depth_m=frame.depth_m,
-                ),
-                repeats if name == "cpu" else max(2, repeats // 4),
-            ),
+            "rgb_to_voxels": {**repeated(predict, count).milliseconds(), "repeats": count},
+            "rgbd_to_voxels": {
+                **repeated(partial(predict, depth_m=frame.depth_m), count).milliseconds(),
+                "repeats": count,
+            },
         }
         entry["training"] = _training_throughput(
             name, 16 if name == "cpu" else 1, 3 if name == "cpu" else 1

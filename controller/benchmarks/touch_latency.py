@@ -1,42 +1,28 @@
 """Latency of the touch loop's two model steps: policy selection and one refinement.
 
-The exploration benchmark calls :func:`touch_latency` per resolution (64^3 and 128^3 in the
-issue) with the decoder it uses there. Each figure is the median over ``repeats`` runs after one
-warm-up run, as wall-clock seconds and as this process's CPU seconds (all threads): on a shared
-machine the wall clock includes time spent waiting for a core, the CPU time does not.
-
-``python -m controller.benchmarks.touch_latency`` prints the JSON for untrained decoders of the ``cpu`` (64^3)
-and ``paper`` (128^3) presets of :mod:`models.prior.networks`: the computation does not depend on the
-weights.
+Each figure is the median of ``repeats`` runs after a warm-up run, in wall-clock and CPU seconds
+(:class:`controller.benchmarks.timing.Stopwatch`). ``python -m controller.benchmarks.touch_latency``
+prints :func:`latency_figures` for untrained ``cpu`` (64^3) and ``paper`` (128^3) decoders
+(docs/touch.md, Latency).
 """
 
 from __future__ import annotations
 
 import json
-import statistics
-import time
-from collections.abc import Callable
+from collections.abc import Sequence
 
 import numpy as np
 import torch
 
+from controller.benchmarks.timing import repeated
 from models.geometry import VoxelGrid, frame_from_z_axis, make_transform
+from models.prior.networks import PRESETS
+from models.prior.shape_prior import ShapePrior
 from models.touch.constraints import TouchResult, pad_grid_world, touch_constraints
 from models.touch.policy import above_table_filter, select_touch
 from models.touch.refinement import Decode, decode_volume, refine_latent
 
 PAD_SIZE_M = (0.019, 0.014)
-
-
-def _timed(run: Callable[[], object], repeats: int) -> dict[str, float]:
-    run()  # warm-up: caches, allocator, lazy initialisation
-    wall, cpu = [], []
-    for _ in range(repeats):
-        wall_start, cpu_start = time.perf_counter(), time.process_time()
-        run()
-        wall.append(time.perf_counter() - wall_start)
-        cpu.append(time.process_time() - cpu_start)
-    return {"wall_s": statistics.median(wall), "cpu_s": statistics.median(cpu)}
 
 
 def _soft_sphere(resolution: int) -> np.ndarray:
@@ -80,7 +66,7 @@ def touch_latency(
         voxels = _soft_sphere(resolution)
     result: dict[str, object] = {"resolution": resolution, "torch_threads": torch.get_num_threads()}
     feasible = above_table_filter(standoff_m=0.1)
-    result["select"] = _timed(lambda: select_touch(voxels, grid, feasible), repeats)
+    result["select"] = repeated(lambda: select_touch(voxels, grid, feasible), repeats).medians()
     candidate = select_touch(voxels, grid, feasible)
     if decode is None or candidate is None:
         return result
@@ -94,30 +80,45 @@ def touch_latency(
         "occupied": len(constraints.occupied),
     }
     result["refine_iterations"] = iterations
-    result["refine"] = _timed(
+    result["refine"] = repeated(
         lambda: refine_latent(decode, latent, constraints, learning_rate, iterations), repeats
-    )
+    ).medians()
     return result
 
 
+def latency_figures(
+    prior: ShapePrior,
+    latent: torch.Tensor | None,
+    resolutions: Sequence[int],
+    learning_rate: float,
+    iterations: int,
+) -> list[dict[str, object]]:
+    """:func:`touch_latency` per resolution. The prior's own resolution uses its decoder and
+    ``latent`` (an object's vision latent); another resolution uses an untrained decoder of the
+    preset with that resolution (the refinement's cost does not depend on the weights; the
+    selection's does, and v ~ 0.5 everywhere is its worst case)."""
+    figures = []
+    for resolution in resolutions:
+        if resolution == prior.preset.voxel_resolution:
+            decoder, decode, code = f"{prior.name} ({prior.preset.name})", prior.decode, latent
+        else:
+            presets = [p for p in PRESETS.values() if p.voxel_resolution == resolution]
+            if not presets:
+                raise ValueError(f"no network preset predicts {resolution}^3 voxels")
+            other = ShapePrior.untrained(presets[0].name)
+            decoder, decode, code = f"untrained {presets[0].name}", other.decode, None
+        entry = touch_latency(
+            resolution, decode, code, iterations=iterations, learning_rate=learning_rate
+        )
+        entry["decoder"] = decoder
+        figures.append(entry)
+    return figures
+
+
 def main() -> None:
-    """Print the latency JSON for untrained ``cpu`` (64^3) and ``paper`` (128^3) decoders."""
-    from models.prior.networks import VoxelDecoder, get_preset
-
-    torch.manual_seed(0)
-    report = []
-    for preset_name in ("cpu", "paper"):
-        preset = get_preset(preset_name)
-        decoder = VoxelDecoder(preset).eval()
-        latent = torch.randn(1, 200)
-
-        def decode(z: torch.Tensor, decoder: VoxelDecoder = decoder) -> torch.Tensor:
-            return torch.sigmoid(decoder(z))
-
-        entry = touch_latency(preset.voxel_resolution, decode, latent)
-        entry["preset"] = preset_name
-        report.append(entry)
-    print(json.dumps(report, indent=2))
+    """Print the latency JSON of untrained ``cpu`` (64^3) and ``paper`` (128^3) decoders."""
+    prior = ShapePrior.untrained("cpu")
+    print(json.dumps(latency_figures(prior, None, (64, 128), 1e-3, 10), indent=2))
 
 
 if __name__ == "__main__":

@@ -1,5 +1,5 @@
-"""CLI commands of the exploration benchmark: `bench explore` (issue 5, items 5 and 6) and
-`bench explore-bounds` (how far touches can lower the error at all)."""
+"""`touchshape bench sim|prior|gelsight|service|explore|explore-bounds`: the benchmarks
+(controller.benchmarks), each printing its JSON and writing it to ``--json``."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from controller.cli.output import print_json
+from controller.cli.prior import evaluation_camera
 from controller.config import load_config
 
 if TYPE_CHECKING:
@@ -33,9 +34,161 @@ BOUNDS_EPILOG = """examples:
 """
 
 
+def add_commands(groups: argparse._SubParsersAction) -> None:
+    """Add the `bench` group."""
+    bench = groups.add_parser("bench", help="performance benchmarks (JSON)")
+    commands = bench.add_subparsers(dest="command", required=True)
+    sim = commands.add_parser(
+        "sim", help="time the bench's renderer and tactile simulation per frame"
+    )
+    sim.add_argument(
+        "--config", type=Path, default=None, help="TOML config file (default: the sim bench)"
+    )
+    sim.add_argument("--frames", type=int, default=20, help="frames timed per measurement")
+    sim.add_argument("--json", type=Path, default=None, help="also write the JSON here")
+    sim.set_defaults(handler=bench_sim)
+
+    prior = commands.add_parser(
+        "prior",
+        help="time image -> voxels for both presets, training throughput, model sizes",
+        epilog="example: touchshape bench prior --json logs/bench_prior.json",
+    )
+    prior.add_argument("--repeats", type=int, default=10, help="timed calls per measurement")
+    prior.add_argument("--json", type=Path, default=None, help="also write the JSON here")
+    prior.set_defaults(handler=bench_prior)
+
+    gelsight = commands.add_parser(
+        "gelsight",
+        help="reconstruction frames/s (lookup + Poisson, 640x480, one thread) vs a baseline",
+        epilog="example: touchshape bench gelsight --json logs/bench_gelsight.json",
+    )
+    gelsight.add_argument("--frames", type=int, default=200, help="frames timed (median)")
+    gelsight.add_argument(
+        "--json", type=Path, nargs="?", const=None, help="also write the JSON to this file"
+    )
+    gelsight.set_defaults(handler=bench_gelsight)
+
+    service = commands.add_parser(
+        "service",
+        help="trigger-to-capture latency, compute vs motion time, memory over sessions",
+    )
+    service.add_argument("--config", type=Path, default=None, help="TOML config file")
+    service.add_argument("--sessions", type=int, default=20, help="sessions in the memory series")
+    service.add_argument("--touches", type=int, default=3, help="touches per session")
+    service.add_argument("--json", type=Path, default=None, help="also write the JSON here")
+    service.set_defaults(handler=bench_service)
+
+    explore = commands.add_parser(
+        "explore",
+        help="shape error vs number of touches per method on the simulated bench (JSON, plot)",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    _object_arguments(explore)
+    explore.add_argument("--touches", type=int, default=10, help="touches per method")
+    explore.add_argument(
+        "--methods",
+        default=METHODS,
+        help=f"comma-separated, of: {METHODS}",
+    )
+    explore.add_argument("--random-runs", type=int, default=10, help="runs of random-prior")
+    explore.add_argument(
+        "--oracle-candidates",
+        type=int,
+        default=4,
+        help="the oracle tries this many active windows and as many random touches",
+    )
+    explore.add_argument("--prior", default=None, help="prior name (default: the config's)")
+    explore.add_argument("--input", choices=("rgb", "rgbd"), default="rgb")
+    explore.add_argument(
+        "--refine-lr", type=float, default=None, help="refinement learning rate (config's)"
+    )
+    explore.add_argument(
+        "--refine-iterations", type=int, default=None, help="iterations per touch (config's)"
+    )
+    explore.add_argument(
+        "--refine-loss",
+        choices=("sum", "balanced", "threshold"),
+        default=None,
+        help="touch loss form (config's models.refine_loss)",
+    )
+    explore.add_argument("--seed", type=int, default=0)
+    explore.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    explore.add_argument(
+        "--workers", type=int, default=1, help="objects run in this many processes"
+    )
+    explore.add_argument(
+        "--no-timing", action="store_true", help="skip the 64^3 / 128^3 latency figures"
+    )
+    explore.add_argument("--json", type=Path, default=None, help="also write the JSON here")
+    explore.add_argument("--plot", type=Path, default=None, help="Chamfer vs touches PNG")
+    explore.set_defaults(handler=bench_explore)
+
+    bounds = commands.add_parser(
+        "explore-bounds",
+        help="how far touches can lower the Chamfer distance: floor, latent fit, ideal touches",
+        epilog=BOUNDS_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    _object_arguments(bounds)
+    bounds.add_argument(
+        "--touches", type=int, nargs="+", default=[10, 30], help="ideal touch counts reported"
+    )
+    bounds.add_argument("--fit-steps", type=int, default=300, help="Adam steps of the latent fit")
+    bounds.add_argument(
+        "--oracle-candidates",
+        type=int,
+        default=0,
+        help="also ideal touches each chosen by the truth among this many targets (0: no)",
+    )
+    bounds.add_argument("--prior", default=None, help="prior name (default: the config's)")
+    bounds.add_argument("--seed", type=int, default=0)
+    bounds.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    bounds.add_argument("--workers", type=int, default=1, help="objects run in this many processes")
+    bounds.add_argument("--json", type=Path, default=None, help="also write the JSON here")
+    bounds.set_defaults(handler=bench_explore_bounds)
+
+
+def bench_sim(args: argparse.Namespace) -> int:
+    from controller.benchmarks.sim import benchmark_sim
+
+    print_json(benchmark_sim(load_config(args.config), frames=args.frames), args.json)
+    return 0
+
+
+def bench_prior(args: argparse.Namespace) -> int:
+    from controller.benchmarks.prior import benchmark_prior
+
+    config = load_config(None)
+    print_json(benchmark_prior(evaluation_camera(config), repeats=args.repeats), args.json)
+    return 0
+
+
+def bench_gelsight(args: argparse.Namespace) -> int:
+    from controller.benchmarks.gelsight import benchmark_gelsight
+
+    print_json(benchmark_gelsight(frames=args.frames), args.json)
+    return 0
+
+
+def bench_service(args: argparse.Namespace) -> int:
+    import tempfile
+
+    from controller.benchmarks.service import benchmark_service
+    from controller.perception.learned import make_perception
+
+    config = load_config(args.config)
+    with tempfile.TemporaryDirectory(prefix="touchshape-bench-") as logs:
+        result = benchmark_service(
+            config, make_perception, Path(logs), sessions=args.sessions, touches=args.touches
+        )
+    print_json(result, args.json)
+    return 0
+
+
 def _object_arguments(parser: argparse.ArgumentParser) -> None:
     """--config and the objects: held-out categories or mesh files."""
-    from models.shapes import CATEGORIES
+    from models.procedural import CATEGORIES
 
     parser.add_argument("--config", type=Path, default=None, help="TOML config (default: sim)")
     parser.add_argument(
@@ -98,88 +251,15 @@ def _run_and_print(
     return result
 
 
-def add_explore_benchmark_command(bench_commands: argparse._SubParsersAction) -> None:
-    """Add `bench explore` and `bench explore-bounds`."""
-    explore = bench_commands.add_parser(
-        "explore",
-        help="shape error vs number of touches per method on the simulated bench (JSON, plot)",
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    _object_arguments(explore)
-    explore.add_argument("--touches", type=int, default=10, help="touches per method")
-    explore.add_argument(
-        "--methods",
-        default=METHODS,
-        help=f"comma-separated, of: {METHODS}",
-    )
-    explore.add_argument("--random-runs", type=int, default=10, help="runs of random-prior")
-    explore.add_argument(
-        "--oracle-candidates",
-        type=int,
-        default=4,
-        help="the oracle tries this many active windows and as many random touches",
-    )
-    explore.add_argument("--prior", default=None, help="prior name (default: the config's)")
-    explore.add_argument("--input", choices=("rgb", "rgbd"), default="rgb")
-    explore.add_argument(
-        "--refine-lr", type=float, default=None, help="refinement learning rate (config's)"
-    )
-    explore.add_argument(
-        "--refine-iterations", type=int, default=None, help="iterations per touch (config's)"
-    )
-    explore.add_argument(
-        "--refine-loss",
-        choices=("sum", "balanced", "threshold"),
-        default=None,
-        help="touch loss form (config's models.refine_loss)",
-    )
-    explore.add_argument("--seed", type=int, default=0)
-    explore.add_argument("--threads", type=int, default=1, help="torch CPU threads")
-    explore.add_argument(
-        "--workers", type=int, default=1, help="objects run in this many processes"
-    )
-    explore.add_argument(
-        "--no-timing", action="store_true", help="skip the 64^3 / 128^3 latency figures"
-    )
-    explore.add_argument("--json", type=Path, default=None, help="also write the JSON here")
-    explore.add_argument("--plot", type=Path, default=None, help="Chamfer vs touches PNG")
-    explore.set_defaults(handler=bench_explore)
-
-    bounds = bench_commands.add_parser(
-        "explore-bounds",
-        help="how far touches can lower the Chamfer distance: floor, latent fit, ideal touches",
-        epilog=BOUNDS_EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    _object_arguments(bounds)
-    bounds.add_argument(
-        "--touches", type=int, nargs="+", default=[10, 30], help="ideal touch counts reported"
-    )
-    bounds.add_argument("--fit-steps", type=int, default=300, help="Adam steps of the latent fit")
-    bounds.add_argument(
-        "--oracle-candidates",
-        type=int,
-        default=0,
-        help="also ideal touches each chosen by the truth among this many targets (0: no)",
-    )
-    bounds.add_argument("--prior", default=None, help="prior name (default: the config's)")
-    bounds.add_argument("--seed", type=int, default=0)
-    bounds.add_argument("--threads", type=int, default=1, help="torch CPU threads")
-    bounds.add_argument("--workers", type=int, default=1, help="objects run in this many processes")
-    bounds.add_argument("--json", type=Path, default=None, help="also write the JSON here")
-    bounds.set_defaults(handler=bench_explore_bounds)
-
-
 def bench_explore(args: argparse.Namespace) -> int:
     import torch
 
     from controller.benchmarks.explore import (
         ExploreSettings,
-        plot_curves,
         run_explore_benchmark,
         with_refinement,
     )
+    from controller.benchmarks.explore_summary import plot_curves
 
     torch.set_num_threads(args.threads)
     config = with_refinement(

@@ -1,14 +1,16 @@
-"""`touchshape calibrate robot`: the paper's world<-robot registration from measured points."""
+"""`touchshape calibrate robot`: robot registration, the paper's world<-robot transform from
+points measured in both frames."""
 
 from __future__ import annotations
 
 import argparse
 import csv
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from models.geometry import invert_transform, matrix_to_ur_pose, register_points
+from models.geometry import Registration, invert_transform, matrix_to_ur_pose, register_points
 
 COLUMNS = ("world_x", "world_y", "world_z", "robot_x", "robot_y", "robot_z")
 
@@ -26,7 +28,8 @@ example: touchshape calibrate robot --points calibration.csv
 """
 
 
-def add_calibrate_commands(groups: argparse._SubParsersAction) -> None:
+def add_commands(groups: argparse._SubParsersAction) -> None:
+    """Add `calibrate robot`."""
     calibrate = groups.add_parser("calibrate", help="register the robot to the world")
     commands = calibrate.add_subparsers(dest="command", required=True)
     robot = commands.add_parser(
@@ -40,6 +43,22 @@ def add_calibrate_commands(groups: argparse._SubParsersAction) -> None:
         "--max-residual-mm", type=float, default=2.0, help="fail above this residual (mm)"
     )
     robot.set_defaults(handler=_calibrate_robot)
+
+
+@dataclass(frozen=True)
+class RobotRegistration:
+    """Where the robot's base is in the world, and how well the measured points agreed."""
+
+    pose_world_base: np.ndarray
+    """4x4; the config's robot.arm.pose_world_base."""
+    fit: Registration
+    """The paper's x_r = R_r x_w + T_r fitted to the points, with the residuals."""
+
+
+def register_robot(points_world: np.ndarray, points_robot: np.ndarray) -> RobotRegistration:
+    """Register the robot from (N, 3) points measured in the world and robot frames."""
+    fit = register_points(points_world, points_robot)
+    return RobotRegistration(invert_transform(fit.transform_to_from), fit)
 
 
 def read_point_pairs(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -62,19 +81,17 @@ def read_point_pairs(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _calibrate_robot(args: argparse.Namespace) -> int:
-    points_world, points_robot = read_point_pairs(args.points)
-    # The paper's x_r = R_r x_w + T_r; the config stores its inverse, the base in the world.
-    registration = register_points(points_world, points_robot)
-    pose_world_base = invert_transform(registration.transform_to_from)
-    pose = matrix_to_ur_pose(pose_world_base)
-    print(f"registration: {registration.report()}")
-    for index, residual in enumerate(registration.residuals_m):
+    registration = register_robot(*read_point_pairs(args.points))
+    fit = registration.fit
+    print(f"registration: {fit.report()}")
+    for index, residual in enumerate(fit.residuals_m):
         print(f"  point {index}: residual {residual * 1e3:.2f} mm")
     print("[robot.arm]")
+    pose = matrix_to_ur_pose(registration.pose_world_base)
     print("pose_world_base = [" + ", ".join(f"{v:.6f}" for v in pose) + "]")
-    if registration.max_residual_m * 1e3 > args.max_residual_mm:
+    if fit.max_residual_m * 1e3 > args.max_residual_mm:
         print(
-            f"error: max residual {registration.max_residual_m * 1e3:.2f} mm is above "
+            f"error: max residual {fit.max_residual_m * 1e3:.2f} mm is above "
             f"{args.max_residual_mm} mm: re-measure the points"
         )
         return 1

@@ -1,18 +1,15 @@
-"""The `touchshape gelsight` commands: calibrate, reconstruct, evaluate.
+"""`touchshape gelsight calibrate|reconstruct|evaluate`: the GelSight lookup table, height maps
+and their accuracy.
 
-Thin layers over models.tactile.lut / tactile_reconstruction / tactile_evaluation. Every
-input is read and checked before anything is written, and outputs appear whole or not at all
-(written to a temporary file or folder beside the target, then renamed).
+Every input is read and checked before anything is written, and outputs appear whole or not at
+all (models.files).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import shutil
 import statistics
-import tempfile
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
@@ -20,21 +17,24 @@ from typing import Any
 
 import numpy as np
 
+from models.files import write_folder_atomically, write_json_atomically
 from models.tactile.evaluation import (
     PressAccuracy,
     evaluate_press,
     forward_model_depth_mm,
     forward_model_simulator,
+    run_sim_closed_loop,
+    sim_table,
     summarise,
 )
 from models.tactile.lut import (
     DATAPACK_BALL_RADIUS_MM,
     DATAPACK_MM_PER_PX,
-    CalibrationError,
-    GelSightCalibration,
+    GelSightLUT,
+    GelSightLUTError,
     ImageBGR,
-    calibrate,
-    calibrate_datapack,
+    build_lut,
+    build_lut_from_datapack,
     check_image,
     default_datapack_path,
     load_datapack,
@@ -73,10 +73,8 @@ EVALUATE_EPILOG = """examples:
 """
 
 
-def add_gelsight_commands(
-    groups: argparse._SubParsersAction, bench_commands: argparse._SubParsersAction
-) -> None:
-    """Add `gelsight calibrate|reconstruct|evaluate` and `bench gelsight`."""
+def add_commands(groups: argparse._SubParsersAction) -> None:
+    """Add `gelsight calibrate|reconstruct|evaluate`."""
     gelsight = groups.add_parser("gelsight", help="GelSight calibration and height maps")
     commands = gelsight.add_subparsers(dest="command", required=True)
     raw = argparse.RawDescriptionHelpFormatter
@@ -141,20 +139,9 @@ def add_gelsight_commands(
     evaluate_parser.add_argument("--json", type=Path, help="also write the report as JSON")
     evaluate_parser.set_defaults(handler=_evaluate)
 
-    bench = bench_commands.add_parser(
-        "gelsight",
-        help="reconstruction frames/s (lookup + Poisson, 640x480, one thread) vs a baseline",
-        epilog="example: touchshape bench gelsight --json logs/bench_gelsight.json",
-    )
-    bench.add_argument("--frames", type=int, default=200, help="frames timed (median)")
-    bench.add_argument(
-        "--json", type=Path, nargs="?", const=None, help="also write the JSON to this file"
-    )
-    bench.set_defaults(handler=_bench)
-
 
 def _calibrate(args: argparse.Namespace) -> int:
-    calibration = run_calibrate(
+    lut = run_calibrate(
         out=args.out,
         datapack=args.datapack,
         frames=args.frames,
@@ -164,7 +151,7 @@ def _calibrate(args: argparse.Namespace) -> int:
         ball_radius_mm=args.ball_radius_mm,
         mm_per_px=args.mm_per_px,
     )
-    print(f"{args.out}: {len(calibration.frames)} presses, {calibration.tile_count} tiles")
+    print(f"{args.out}: {len(lut.frames)} presses, {lut.tile_count} tiles")
     return 0
 
 
@@ -185,12 +172,12 @@ def _reconstruct(args: argparse.Namespace) -> int:
 def _evaluate(args: argparse.Namespace) -> int:
     if args.sim:
         if args.calib is not None:
-            calibration = GelSightCalibration.load(args.calib)
+            lut = GelSightLUT.load(args.calib)
         else:
             pack = load_datapack(args.datapack or default_datapack_path())
             frames = parse_frames(args.calib_frames, len(pack.images_bgr))
-            calibration = calibrate_datapack(pack, frames)
-        rows = run_sim_closed_loop(calibration)
+            lut = build_lut_from_datapack(pack, frames)
+        rows = run_sim_closed_loop(lut)
         report: dict[str, Any] = {"sim_closed_loop": rows}
         print(sim_table(rows), end="")
     else:
@@ -203,19 +190,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         )
         print(accuracy_table(report), end="")
     if args.json is not None:
-        write_file_atomically(
-            args.json, lambda path: path.write_text(json.dumps(report, indent=2) + "\n")
-        )
-    return 0
-
-
-def _bench(args: argparse.Namespace) -> int:
-    from controller.benchmarks.sim import benchmark_gelsight
-
-    text = json.dumps(benchmark_gelsight(frames=args.frames), indent=2)
-    print(text)
-    if args.json is not None:
-        write_file_atomically(args.json, lambda path: path.write_text(text + "\n"))
+        write_json_atomically(args.json, report)
     return 0
 
 
@@ -229,31 +204,31 @@ def run_calibrate(
     reference: Path | None = None,
     ball_radius_mm: float | None = None,
     mm_per_px: float | None = None,
-) -> GelSightCalibration:
+) -> GelSightLUT:
     """Calibrate from a dataPack's frames, or from a folder of images + CSV + reference image,
-    and save the calibration to ``out``.
+    and save the lookup table to ``out``.
 
     The dataPack defaults to taxim's real presses, whose ball radius (2.0 mm) and pixel pitch
     (0.0295 mm) are the defaults there; a folder of one's own presses must give both.
     """
     if images is not None or presses_csv is not None:
         if datapack is not None:
-            raise CalibrationError("give either --datapack or --images/--csv, not both")
-        calibration = _calibrate_folder(images, presses_csv, reference, ball_radius_mm, mm_per_px)
+            raise GelSightLUTError("give either --datapack or --images/--csv, not both")
+        lut = _calibrate_folder(images, presses_csv, reference, ball_radius_mm, mm_per_px)
     else:
         if reference is not None:
-            raise CalibrationError("--reference is for --images: a dataPack has its own f0")
+            raise GelSightLUTError("--reference is for --images: a dataPack has its own f0")
         pack_path = datapack or default_datapack_path()
         pack = load_datapack(pack_path)
-        calibration = calibrate_datapack(
+        lut = build_lut_from_datapack(
             pack,
             parse_frames(frames, len(pack.images_bgr)),
             ball_radius_mm=DATAPACK_BALL_RADIUS_MM if ball_radius_mm is None else ball_radius_mm,
             mm_per_px=DATAPACK_MM_PER_PX if mm_per_px is None else mm_per_px,
             source=str(pack_path),
         )
-    calibration.save(out)
-    return calibration
+    lut.save(out)
+    return lut
 
 
 def _calibrate_folder(
@@ -262,8 +237,8 @@ def _calibrate_folder(
     reference: Path | None,
     ball_radius_mm: float | None,
     mm_per_px: float | None,
-) -> GelSightCalibration:
-    """Calibration from one's own presses: every one of the five inputs is required."""
+) -> GelSightLUT:
+    """The lookup table from one's own presses: every one of the five inputs is required."""
     if (
         images is None
         or presses_csv is None
@@ -279,9 +254,9 @@ def _calibrate_folder(
             "--mm-per-px": mm_per_px,
         }
         missing = [flag for flag, value in given.items() if value is None]
-        raise CalibrationError(f"calibrating from an image folder also needs {missing}")
+        raise GelSightLUTError(f"calibrating from an image folder also needs {missing}")
     presses = load_press_folder(images, presses_csv)
-    return calibrate(
+    return build_lut(
         presses,
         read_image_bgr(reference),
         ball_radius_mm=ball_radius_mm,
@@ -298,24 +273,24 @@ def _frames_to_reconstruct(
     shape: tuple[int, int],
 ) -> tuple[ImageBGR, list[tuple[str, ImageBGR]]]:
     """Reference frame and (name, image) pairs from a dataPack or from image files, each
-    checked against the calibration's image ``shape`` (the error names the file)."""
+    checked against the lookup table's image ``shape`` (the error names the file)."""
     if images:
         if datapack is not None:
-            raise CalibrationError("give either --datapack or --image, not both")
+            raise GelSightLUTError("give either --datapack or --image, not both")
         if reference is None:
-            raise CalibrationError(
+            raise GelSightLUTError(
                 "missing reference image: --image needs --reference, the same sensor's"
                 " no-contact frame"
             )
         names = [path.stem for path in images]
         if len(set(names)) != len(names):
-            raise CalibrationError(f"image names {names} repeat: outputs would overwrite")
+            raise GelSightLUTError(f"image names {names} repeat: outputs would overwrite")
         loaded = [(path, read_image_bgr(path)) for path in [reference, *images]]
         for path, image in loaded:
             check_image(image, f"image {path}", shape)
         return loaded[0][1], [(path.stem, image) for path, image in loaded[1:]]
     if reference is not None:
-        raise CalibrationError("--reference is for --image: a dataPack has its own f0")
+        raise GelSightLUTError("--reference is for --image: a dataPack has its own f0")
     pack_path = datapack or default_datapack_path()
     pack = load_datapack(pack_path)
     check_image(pack.reference_bgr, f"dataPack {pack_path} reference image", shape)
@@ -333,11 +308,11 @@ def run_reconstruct(
     reference: Path | None = None,
 ) -> list[Path]:
     """Write ``<frame>.npy`` (height, mm float32), ``<frame>.png`` previews and summary.json."""
-    calibration = GelSightCalibration.load(calib)
+    lut = GelSightLUT.load(calib)
     reference_bgr, named_images = _frames_to_reconstruct(
-        datapack, frames, images or [], reference, calibration.image_shape
+        datapack, frames, images or [], reference, lut.image_shape
     )
-    reconstructor = TactileReconstructor(calibration, reference_bgr)
+    reconstructor = TactileReconstructor(lut, reference_bgr)
     results = [(name, image, reconstructor.reconstruct(image)) for name, image in named_images]
 
     summary: dict[str, Any] = {"calibration": str(calib), "frames": {}}
@@ -356,47 +331,6 @@ def run_reconstruct(
         writers[f"{name}.png"] = lambda path, n=name, i=image, r=result: save_preview(path, n, i, r)
     writers["summary.json"] = lambda path: path.write_text(json.dumps(summary, indent=2) + "\n")
     return write_folder_atomically(out, writers)
-
-
-def write_file_atomically(path: Path, write: Callable[[Path], None]) -> Path:
-    """Write one file through a temporary file in the same folder and a rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temp_name = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    os.close(handle)
-    try:
-        os.chmod(temp_name, 0o644)  # mkstemp makes it private; outputs are ordinary files
-        write(Path(temp_name))
-        os.replace(temp_name, path)
-    except BaseException:
-        Path(temp_name).unlink(missing_ok=True)
-        raise
-    return path
-
-
-def write_folder_atomically(out: Path, writers: dict[str, Callable[[Path], None]]) -> list[Path]:
-    """Write files into a temporary folder beside ``out``, then move them into place.
-
-    A new ``out`` appears in one rename; into an existing folder each file is replaced in one
-    rename. If any writer fails, nothing under ``out`` changes.
-    """
-    if out.exists() and not out.is_dir():
-        raise CalibrationError(f"output {out} exists and is not a folder")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
-        staging.chmod(0o755)  # mkdtemp makes it private; the output is an ordinary folder
-        for file_name, write in writers.items():
-            write(staging / file_name)
-        if not out.exists():
-            os.replace(staging, out)
-        else:
-            for file_name in writers:
-                os.replace(staging / file_name, out / file_name)
-            staging.rmdir()
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    return [out / file_name for file_name in writers]
 
 
 def save_preview(path: Path, name: str, image_bgr: ImageBGR, result: TactileReconstruction) -> None:
@@ -440,14 +374,14 @@ def run_evaluate(
     count = len(pack.images_bgr)
     test = parse_frames(test_frames, count)
     if calib is not None:
-        calibration = GelSightCalibration.load(calib)
+        lut = GelSightLUT.load(calib)
     else:
         train = parse_frames(calib_frames, count)
         overlap = sorted(set(train) & set(test))
         if overlap:
-            raise CalibrationError(f"frames {overlap} are both calibration and test frames")
-        calibration = calibrate_datapack(pack, train, source=str(pack_path))
-    reconstructor = TactileReconstructor(calibration, pack.reference_bgr)
+            raise GelSightLUTError(f"frames {overlap} are both calibration and test frames")
+        lut = build_lut_from_datapack(pack, train, source=str(pack_path))
+    reconstructor = TactileReconstructor(lut, pack.reference_bgr)
     rows: list[PressAccuracy] = []
     for index in test:
         result = reconstructor.reconstruct(pack.images_bgr[index])
@@ -456,21 +390,21 @@ def run_evaluate(
                 result.height_mm,
                 result.contact_mask,
                 pack.press(index),
-                ball_radius_mm=calibration.ball_radius_mm,
-                mm_per_px=calibration.mm_per_px,
+                ball_radius_mm=lut.ball_radius_mm,
+                mm_per_px=lut.mm_per_px,
             )
         )
     report = {
         "datapack": str(pack_path),
-        "calibration_frames": list(calibration.frames),
+        "calibration_frames": list(lut.frames),
         "test_frames": [str(i) for i in test],
-        "summary": summarise(rows, calibration.ball_radius_mm),
+        "summary": summarise(rows, lut.ball_radius_mm),
         "frames": [asdict(row) for row in rows],
     }
     if fit_depth:
-        simulator = forward_model_simulator(calibration.mm_per_px, calibration.image_shape)
+        simulator = forward_model_simulator(lut.mm_per_px, lut.image_shape)
         for index, row in zip(test, report["frames"], strict=True):
-            depth = forward_model_depth_mm(simulator, pack.press(index), calibration.ball_radius_mm)
+            depth = forward_model_depth_mm(simulator, pack.press(index), lut.ball_radius_mm)
             peak = row["cap_depth_mm"] * (1.0 + row["peak_error_absolute"])
             row["model_depth_mm"] = depth
             row["peak_error_model"] = peak / depth - 1.0
@@ -514,69 +448,4 @@ def accuracy_table(report: dict[str, Any]) -> str:
         + f"\n\nWorst frame (largest RMSE): {worst['frame']}, RMSE {worst['rmse_mm']:.3f} mm,"
         f" fitted radius {worst['fitted_radius_mm']:.3f} mm. Median pedestal (best offset)"
         f" {pedestal:.3f} mm.\n"
-    )
-
-
-# Spheres (radius mm, depth mm) pressed into the simulated pad for the closed-loop table: the
-# calibration ball at the dataPack's depth and shallower, and larger, flatter objects.
-SIM_SPHERES = ((2.0, 1.0), (2.0, 0.5), (3.0, 0.8), (5.0, 0.6), (10.0, 0.5))
-
-
-def run_sim_closed_loop(
-    calibration: GelSightCalibration, *, seed: int = 0
-) -> list[dict[str, float]]:
-    """Reconstruct simulated sphere presses (models.tactile.sim) and compare with their truth.
-
-    The simulator renders the gel surface (sphere cap plus its elastic skirt) through Taxim's
-    optical model onto the real no-contact frame; the reference is the mean of 10 noisy
-    no-contact renders, as the simulated sensor gives it. Errors are against that surface.
-    """
-    from models.tactile.sim import GelSightSimulator, sphere_cap_indentation_mm
-
-    simulator = GelSightSimulator()
-    rng = np.random.default_rng(seed)
-    no_contact = np.zeros(simulator.spec.shape, dtype=np.float32)
-    reference = np.mean([simulator.render_bgr(no_contact, rng) for _ in range(10)], axis=0)
-    reconstructor = TactileReconstructor(calibration, np.rint(reference).astype(np.uint8))
-    centre_px = (360.0, 220.0)
-    rows = []
-    for radius_mm, depth_mm in SIM_SPHERES:
-        geometric = sphere_cap_indentation_mm(simulator.spec, centre_px, radius_mm, depth_mm)
-        surface = simulator.elastic_deformation_mm(geometric)
-        result = reconstructor.reconstruct(simulator.render_bgr(surface, rng))
-        touching = geometric > 0
-        true_contact = touching & (surface == geometric)
-        error = result.height_mm - surface
-        union = np.count_nonzero(result.contact_mask | true_contact)
-        rows.append(
-            {
-                "radius_mm": radius_mm,
-                "depth_mm": depth_mm,
-                "true_peak_mm": float(surface.max()),
-                "peak_mm": result.peak_mm,
-                "peak_error": result.peak_mm / float(surface.max()) - 1.0,
-                "rmse_contact_mm": float(np.sqrt(np.mean(error[touching] ** 2))),
-                "max_abs_error_mm": float(np.abs(error).max()),
-                "contact_iou": np.count_nonzero(result.contact_mask & true_contact) / union,
-            }
-        )
-    return rows
-
-
-def sim_table(rows: list[dict[str, float]]) -> str:
-    """Markdown table of :func:`run_sim_closed_loop`'s rows."""
-    header = (
-        "| sphere radius (mm) | pressed (mm) | true peak (mm) | reconstructed peak (mm) |"
-        " peak error | RMSE in contact (mm) | max error (mm) | contact IoU |\n"
-        "|---|---|---|---|---|---|---|---|\n"
-    )
-    return (
-        header
-        + "\n".join(
-            f"| {r['radius_mm']:.1f} | {r['depth_mm']:.1f} | {r['true_peak_mm']:.3f} |"
-            f" {r['peak_mm']:.3f} | {r['peak_error']:+.1%} | {r['rmse_contact_mm']:.3f} |"
-            f" {r['max_abs_error_mm']:.3f} | {r['contact_iou']:.2f} |"
-            for r in rows
-        )
-        + "\n"
     )

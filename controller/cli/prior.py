@@ -1,21 +1,24 @@
-"""CLI commands of the shape priors: `data build`, `train`, `eval prior`, `bench prior`."""
+"""`touchshape data build`, `train sketch|shape|calibrate` and `eval prior`: the shape priors'
+training data, networks and evaluation."""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from controller.cli.output import print_json
 from controller.config import load_config
 
+if TYPE_CHECKING:
+    from controller.config import Config
+    from models.prior.evaluation import BenchCamera
 
-def add_prior_commands(
-    groups: argparse._SubParsersAction, bench_commands: argparse._SubParsersAction
-) -> None:
-    """Add the `data build`, `train sketch|shape`, `eval prior` and `bench prior` commands."""
-    from models.prior.dataset import ALL_CATEGORIES
-    from models.shapes import CATEGORIES
+
+def add_commands(groups: argparse._SubParsersAction) -> None:
+    """Add the `data build`, `train sketch|shape|calibrate` and `eval prior` commands."""
+    from models.procedural import ALL_CATEGORIES, CATEGORIES
 
     data = groups.add_parser("data", help="training data for the shape priors")
     data_commands = data.add_subparsers(dest="command", required=True)
@@ -157,21 +160,12 @@ def add_prior_commands(
     prior.add_argument("--json", type=Path, default=None, help="also write the JSON here")
     prior.set_defaults(handler=eval_prior)
 
-    bench = bench_commands.add_parser(
-        "prior",
-        help="time image -> voxels for both presets, training throughput, model sizes",
-        epilog="example: touchshape bench prior --json logs/bench_prior.json",
-    )
-    bench.add_argument("--repeats", type=int, default=10, help="timed calls per measurement")
-    bench.add_argument("--json", type=Path, default=None, help="also write the JSON here")
-    bench.set_defaults(handler=bench_prior)
-
 
 def data_build(args: argparse.Namespace) -> int:
     from models.prior.dataset import BuildSpec, ViewRecipe, build_dataset
     from models.prior.networks import get_preset
 
-    config = load_config(getattr(args, "config", None))
+    config = load_config(None)
     camera = config.cameras.rgbd
     preset = get_preset(args.preset)
     recipe = ViewRecipe(
@@ -228,7 +222,7 @@ def calibrate_shape(args: argparse.Namespace) -> int:
     from models.metrics import voxel_iou
     from models.prior.dataset import SketchVoxelDataset, split_by_shape
     from models.prior.networks import ShapeNet, SketchNet, get_preset
-    from models.prior.platt import fit_platt, fold_platt, iou_offset, predicted_logits
+    from models.prior.platt import PlattScaling, predicted_logits
     from models.prior.training import load_weights, save_weights
 
     if args.threads:
@@ -245,25 +239,26 @@ def calibrate_shape(args: argparse.Namespace) -> int:
         return indices[::step][: args.samples]
 
     logits, truth = predicted_logits(sketch, shape, dataset, spread(train_idx))
-    scale, platt_offset = fit_platt(logits, truth)
-    offset = iou_offset(logits, truth, scale, platt_offset)
+    platt = PlattScaling.fit(logits, truth)
+    tuned = platt.with_iou_offset(logits, truth)
     del logits, truth
     val_logits, val_truth = predicted_logits(sketch, shape, dataset, spread(val_idx))
     result = {
-        "scale": scale,
-        "platt_offset": platt_offset,
-        "offset": offset,
+        "scale": platt.scale,
+        "platt_offset": platt.offset,
+        "offset": tuned.offset,
         "val_views": len(val_truth),
         "val_iou_before": voxel_iou(torch.sigmoid(val_logits), val_truth),
-        "val_iou_after": voxel_iou(torch.sigmoid(scale * val_logits + offset), val_truth),
+        "val_iou_after": voxel_iou(torch.sigmoid(tuned.apply(val_logits)), val_truth),
     }
-    fold_platt(shape, scale, offset)
+    tuned.fold_into(shape)
     save_weights(shape, "shape", args.preset, args.out)
     print_json(result, None)
     return 0
 
 
-def _bench_camera(config):
+def evaluation_camera(config: Config) -> BenchCamera:
+    """The config's RGB-D camera and scene, as the prior's evaluation renders them."""
     from models.camera import CameraIntrinsics
     from models.prior.evaluation import BenchCamera
 
@@ -303,18 +298,10 @@ def eval_prior(args: argparse.Namespace) -> int:
     result = evaluate_prior(
         prior,
         objects,
-        _bench_camera(config),
+        evaluation_camera(config),
         views=args.views,
         input_mode=args.input,
         seed=args.seed,
     )
     print_json(result, args.json)
-    return 0
-
-
-def bench_prior(args: argparse.Namespace) -> int:
-    from controller.benchmarks.prior import benchmark_prior
-
-    config = load_config(None)
-    print_json(benchmark_prior(_bench_camera(config), repeats=args.repeats), args.json)
     return 0

@@ -1,24 +1,18 @@
-"""`touchshape serve` and `touchshape explore`: the service and one local session."""
+"""`touchshape serve`: the service, exploring on request over Zenoh until stopped."""
 
 from __future__ import annotations
 
 import argparse
 import asyncio
 import dataclasses
-import logging
 import signal
 from pathlib import Path
 
-from controller.cli.output import print_json
 from controller.config import Config, load_config
-from controller.request import ExploreRequest
-
-log = logging.getLogger(__name__)
 
 
-def add_service_commands(
-    groups: argparse._SubParsersAction, bench_commands: argparse._SubParsersAction
-) -> None:
+def add_commands(groups: argparse._SubParsersAction) -> None:
+    """Add `serve`."""
     serve = groups.add_parser(
         "serve",
         help="run the service: explore on request over Zenoh (Ctrl-C stops it safely)",
@@ -30,51 +24,26 @@ def add_service_commands(
     serve.add_argument("--robot-id", help="robot id in the key expressions touchshape/<id>/...")
     serve.set_defaults(handler=_serve)
 
-    explore = groups.add_parser(
-        "explore",
-        help="run one exploration session locally (no Zenoh) and print its summary",
-        epilog="example: touchshape explore --object mug --touches 10",
-    )
-    explore.add_argument("--config", type=Path, default=None, help="TOML config file")
-    explore.add_argument("--object", help="sim object: category or mesh file (default: config)")
-    explore.add_argument("--touches", type=int, default=10, help="touch budget (1..100)")
-    explore.add_argument("--policy", choices=["active", "random"], default="active")
-    explore.add_argument("--update", choices=["prior", "direct"], default="prior")
-    explore.add_argument("--input", choices=["rgb", "rgbd"], default="rgb")
-    explore.set_defaults(handler=_explore)
 
-    bench = bench_commands.add_parser(
-        "service",
-        help="trigger-to-capture latency, compute vs motion time, memory over sessions",
-    )
-    bench.add_argument("--config", type=Path, default=None, help="TOML config file")
-    bench.add_argument("--sessions", type=int, default=20, help="sessions in the memory series")
-    bench.add_argument("--touches", type=int, default=3, help="touches per session")
-    bench.add_argument("--json", type=Path, default=None, help="also write the JSON here")
-    bench.set_defaults(handler=_bench_service)
-
-
-def _with_overrides(args: argparse.Namespace) -> Config:
+def _service_config(args: argparse.Namespace) -> Config:
+    """The config with the endpoints and robot id the arguments give."""
     config = load_config(args.config)
     messaging = config.messaging
-    if getattr(args, "listen", None):
+    if args.listen:
         messaging = dataclasses.replace(messaging, listen=tuple(args.listen))
-    if getattr(args, "connect", None):
+    if args.connect:
         messaging = dataclasses.replace(messaging, connect=tuple(args.connect))
     robot = config.robot
-    if getattr(args, "robot_id", None):
+    if args.robot_id:
         robot = dataclasses.replace(robot, id=args.robot_id)
-    sim = config.sim
-    if getattr(args, "object", None):
-        sim = dataclasses.replace(sim, object=args.object)
-    return dataclasses.replace(config, messaging=messaging, robot=robot, sim=sim)
+    return dataclasses.replace(config, messaging=messaging, robot=robot)
 
 
 def _serve(args: argparse.Namespace) -> int:
     from controller.perception.learned import make_perception
     from controller.service import TouchshapeService
 
-    config = _with_overrides(args)
+    config = _service_config(args)
 
     async def run() -> None:
         stop = asyncio.Event()
@@ -94,65 +63,3 @@ def _serve(args: argparse.Namespace) -> int:
 
     asyncio.run(run())
     return 0
-
-
-def _explore(args: argparse.Namespace) -> int:
-    from controller.perception.learned import make_perception
-    from controller.service import TouchshapeService
-
-    config = _with_overrides(args)
-    low, high = ExploreRequest.MAX_TOUCHES_RANGE
-    if not low <= args.touches <= high:
-        raise ValueError(f"--touches must be in {low}..{high}")
-    request = ExploreRequest(
-        max_touches=args.touches,
-        policy=args.policy,
-        update=args.update,
-        input=args.input,
-        prior=config.models.prior,
-    )
-
-    async def run() -> dict:
-        service = TouchshapeService(config, make_perception)
-        await service.start()
-        try:
-            service.start_session(request)
-            summary = await service.wait_session()
-        finally:
-            await service.stop()
-        assert summary is not None
-        return summary
-
-    summary = asyncio.run(run())
-    _print_summary(summary)
-    return 0 if summary["state"] == "done" else 1
-
-
-def _bench_service(args: argparse.Namespace) -> int:
-    import tempfile
-
-    from controller.benchmarks.service import benchmark_service
-    from controller.perception.learned import make_perception
-
-    config = load_config(args.config)
-    with tempfile.TemporaryDirectory(prefix="touchshape-bench-") as logs:
-        result = benchmark_service(
-            config, make_perception, Path(logs), sessions=args.sessions, touches=args.touches
-        )
-    print_json(result, args.json)
-    return 0
-
-
-def _print_summary(summary: dict) -> None:
-    rows = [
-        ("session", summary["session"]),
-        ("result", summary["state"] + (f" ({summary['error']})" if summary["error"] else "")),
-        ("touches", f"{summary['touches']} ({summary['contacts']} contacts)"),
-        ("compute / motion", f"{summary['compute_s']:.1f} s / {summary['motion_s']:.1f} s"),
-    ]
-    for metric, values in summary.get("metrics", {}).items():
-        rows.append((metric, " -> ".join(f"{v:.2f}" for v in (values[0], values[-1]))))
-    rows += [(name, path) for name, path in summary.get("artifacts", {}).items()]
-    width = max(len(name) for name, _ in rows)
-    for name, value in rows:
-        print(f"{name:<{width}}  {value}")

@@ -1,4 +1,4 @@
-"""Motion planning for touches, as in the paper, with every pose checked by ``controller.motion.safety``.
+"""Motion planning for touches, as in the paper; every pose is checked by ``motion.safety``.
 
 A touch: the arm brings the pad to ``approach_distance_m`` from the target on its approach line
 (pad facing the surface), approaches along the line to ``standoff_m`` before the predicted

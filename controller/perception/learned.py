@@ -35,8 +35,8 @@ from models.geometry import make_transform
 from models.prior.networks import LATENT_DIM
 from models.prior.shape_prior import ShapePrior
 from models.tactile.lut import (
-    GelSightCalibration,
-    calibrate_datapack,
+    GelSightLUT,
+    build_lut_from_datapack,
     default_datapack_path,
     load_datapack,
 )
@@ -75,13 +75,13 @@ REPEAT_RADIUS_M = 0.005
 again: the earlier touch already answered what it could."""
 
 
-def load_calibration(config: Config) -> GelSightCalibration:
+def load_calibration(config: Config) -> GelSightLUT:
     """The sensor's calibration file, or one built from the real presses shipped with taxim
     (what the simulated GelSight's optics were fitted on)."""
     if config.sensor.calibration_file:
-        return GelSightCalibration.load(config.sensor.calibration_file)
+        return GelSightLUT.load(config.sensor.calibration_file)
     pack = load_datapack(default_datapack_path())
-    return calibrate_datapack(pack, list(range(len(pack.images_bgr))), source="taxim dataPack")
+    return build_lut_from_datapack(pack, list(range(len(pack.images_bgr))), source="taxim dataPack")
 
 
 class LearnedPerception:
@@ -92,7 +92,7 @@ class LearnedPerception:
         config: Config,
         *,
         camera_position_world: np.ndarray,
-        calibration: GelSightCalibration,
+        calibration: GelSightLUT,
         priors: dict[str, ShapePrior] | None = None,
         seed: int = 0,
     ) -> None:

@@ -1,6 +1,6 @@
 """What the controller needs from perception, as a protocol: reconstruct a shape from an image,
-choose a touch, interpret a touch, refine the shape. ``controller.perception.learned`` implements it with
-the shape prior, the GelSight reconstruction, the touch constraints and the policy."""
+choose a touch, interpret a touch, refine the shape. ``controller.perception.learned`` implements
+it with the shape prior, the GelSight reconstruction, the touch constraints and the policy."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The process that runs pylibfreenect2 for ``drivers.rgbd.kinect_v2`` (protocol and why: see
-``drivers.rgbd.process_camera``; pylibfreenect2's Cython wrappers call libfreenect2 without releasing
-the GIL). Only numpy and pylibfreenect2 are imported here, so the process starts quickly.
+``drivers.rgbd.process_camera``; pylibfreenect2's Cython wrappers call libfreenect2 without
+releasing the GIL). Only numpy and pylibfreenect2 are imported here, so the process starts quickly.
 """
 
 from __future__ import annotations

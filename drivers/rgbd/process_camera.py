@@ -4,8 +4,8 @@ The vendor bindings (pyrealsense2, pylibfreenect2) hold the GIL inside blocking 
 with pyrealsense2 2.59.1, ``pipeline.start`` with no camera stalls every Python thread for 15 s;
 pylibfreenect2's Cython wrappers call ``openDevice`` and ``waitForNewFrame`` without releasing
 it. A thread cannot keep the event loop responsive then, so the SDK lives in a spawned process
-(``drivers.rgbd.realsense_worker``, ``drivers.rgbd.kinect_v2_worker``) and a thread here only waits on the
-pipe from it, keeping the newest frame for ``read`` (with a max-age check).
+(``drivers.rgbd.realsense_worker``, ``drivers.rgbd.kinect_v2_worker``) and a thread here only
+waits on the pipe from it, keeping the newest frame for ``read`` (with a max-age check).
 
 The worker protocol, on a multiprocessing pipe: ``("ready",)`` once streaming, then
 ``("frame", colour_rgb uint8 HxWx3, depth_m float32 HxW, (width, height, fx, fy, cx, cy))`` per

@@ -1,6 +1,7 @@
 """Intel RealSense RGB-D camera through pyrealsense2 (``cameras.rgbd.type = "realsense"``).
 
-The SDK runs in a worker process (``drivers.rgbd.realsense_worker``; why: ``drivers.rgbd.process_camera``).
+The SDK runs in a worker process (``drivers.rgbd.realsense_worker``; why:
+``drivers.rgbd.process_camera``).
 Depth is aligned to the colour camera by the SDK (``rs.align``) and scaled to metres with the
 device's depth scale (0 stays "no return"). ``playback_file`` replays a recording (.bag, or .db3
 from SDK 2.57 on) in a loop instead of opening a camera. The colour image keeps the stream's

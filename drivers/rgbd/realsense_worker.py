@@ -1,5 +1,6 @@
 """The process that runs pyrealsense2 for ``drivers.rgbd.realsense`` (protocol and why: see
-``drivers.rgbd.process_camera``). pyrealsense2 holds the GIL inside its blocking calls (measured with
+``drivers.rgbd.process_camera``). pyrealsense2 holds the GIL inside its blocking calls (measured
+with
 2.59.1: ``pipeline.start`` with no camera attached stalls every Python thread for 15 s,
 ``query_devices`` for 100 ms, ``try_wait_for_frames`` for tens of milliseconds). Only numpy and
 pyrealsense2 are imported here, so the process starts quickly.

@@ -24,8 +24,8 @@ from models.geometry import (
     transform_points,
     ur_pose_to_matrix,
 )
+from models.procedural import object_mesh
 from models.render import Scene, SceneObject, make_table
-from models.shapes import object_mesh
 
 log = logging.getLogger(__name__)
 

@@ -1,11 +1,12 @@
 """Training data for the shape priors: rendered views of shapes with 2.5D sketches and voxels.
 
-Each view places one shape (procedural, the box family, or a ShapeNetCore-style mesh) on the bench
+Each view places one shape (:mod:`models.procedural`, or a ShapeNetCore-style mesh) on the bench
 table at the object point, yawed at random about the vertical axis, and renders it with the
 project's renderer (:func:`models.render.render`) through the *virtual camera* of
-:mod:`models.prior.virtual_camera`: the deployment Kinect pose (45.72 cm high, 30 deg tilt, 0.62 m away)
-with jitter, cropped around the registered voxel grid at the network's resolution. Backgrounds:
-1/3 white, 1/3 lit gradients with random coloured illumination, 1/3 random textures.
+:mod:`models.prior.virtual_camera`: the deployment Kinect pose (45.72 cm high, 30 deg tilt,
+0.62 m away) with jitter, cropped around the registered voxel grid at the network's resolution.
+Backgrounds: 1/3 white, 1/3 lit gradients with random coloured illumination, 1/3 random
+textures.
 Ground-truth voxels are in the controller's frame: the :class:`models.geometry.VoxelGrid` whose
 axes face the (jittered) camera, indexed [i, j, k], occupancy of each voxel centre.
 
@@ -24,7 +25,6 @@ from __future__ import annotations
 import json
 import math
 import multiprocessing
-import os
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -32,22 +32,17 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
-from manifold3d import CrossSection, JoinType
 
 from models.camera import CameraIntrinsics, look_at_pose
+from models.files import write_atomically, write_json_atomically
 from models.geometry import VoxelGrid, axes_facing_camera, make_transform, rotation_about_axis
 from models.prior.virtual_camera import GridCrop, grid_crop
+from models.procedural import ALL_CATEGORIES, CATEGORIES, procedural_shape
 from models.render import Lighting, Scene, SceneObject, apply_kinect_depth_noise, make_table, render
-from models.shapes import CATEGORIES, load_mesh_file, make_shape
+from models.shapes import load_mesh_file, voxelize
 
 EVAL_SEED_START = 1_000_000
 """Shape seeds >= this are held out for evaluation and never used for training data."""
-
-BOX_CATEGORY = "box"
-"""The box family (cereal, sugar, tea boxes...), used by the ``box`` prior."""
-
-ALL_CATEGORIES: tuple[str, ...] = (*CATEGORIES, BOX_CATEGORY)
-"""Category index = position here (the 14 paper categories, then the box family)."""
 
 BACKGROUNDS: tuple[str, ...] = ("white", "gradient", "texture")
 
@@ -103,44 +98,6 @@ class BuildSpec:
     recipe: ViewRecipe = field(default_factory=ViewRecipe)
 
 
-# --- the box family -------------------------------------------------------------------------------
-
-
-def make_box_shape(rng: np.random.Generator) -> trimesh.Trimesh:
-    """A random box-like product (cuboid, rounded or tapered, sometimes with a lid), watertight.
-
-    Metres, bottom centre at the origin, z up; fits 22 cm tall and 20 cm wide like the library.
-    """
-    width = rng.uniform(0.04, 0.19)
-    depth = rng.uniform(0.03, min(0.15, width))
-    height = rng.uniform(0.04, 0.22)
-    radius = rng.uniform(0.0005, 0.2 * min(width, depth)) if rng.random() < 0.5 else 0.0005
-    section = CrossSection.square((width - 2 * radius, depth - 2 * radius), center=True).offset(
-        radius, JoinType.Round, circular_segments=16
-    )
-    taper = rng.uniform(0.75, 0.95) if rng.random() < 0.2 else 1.0
-    body = section.extrude(height, scale_top=(taper, taper))
-    if rng.random() < 0.25:  # a lid slightly wider than the box
-        lid_height = rng.uniform(0.01, 0.3 * height)
-        lip = rng.uniform(0.002, 0.006)
-        lid = CrossSection.square((width * taper + 2 * lip, depth * taper + 2 * lip), center=True)
-        body = body + lid.extrude(lid_height).translate((0, 0, height - lid_height))
-    mesh_data = body.to_mesh64()
-    mesh = trimesh.Trimesh(
-        np.asarray(mesh_data.vert_properties)[:, :3], np.asarray(mesh_data.tri_verts), process=False
-    )
-    low, high = mesh.bounds
-    mesh.vertices = mesh.vertices - [(low[0] + high[0]) / 2, (low[1] + high[1]) / 2, low[2]]
-    return mesh
-
-
-def procedural_shape(category: str, rng: np.random.Generator) -> trimesh.Trimesh:
-    """A random shape of one of :data:`ALL_CATEGORIES` (table frame, metres)."""
-    if category == BOX_CATEGORY:
-        return make_box_shape(rng)
-    return make_shape(category, rng)
-
-
 def shape_rngs(category_index: int, shape_seed: int) -> tuple[np.random.Generator, ...]:
     """(shape rng, view rng) of one shape: the documented per-shape seeding."""
     return (
@@ -161,43 +118,6 @@ def shapenet_models(root: Path) -> dict[str, list[Path]]:
     if not found:
         raise FileNotFoundError(f"no */*/models/model_normalized.obj under {root}")
     return found
-
-
-# --- voxel ground truth ---------------------------------------------------------------------------
-
-
-def voxelize(mesh_world: trimesh.Trimesh, grid: VoxelGrid) -> np.ndarray:
-    """Occupancy (N, N, N) bool, indexed [i, j, k], of each voxel centre inside ``mesh_world``.
-
-    Watertight meshes use trimesh's ray-based inside test. Other meshes (user files with holes)
-    use a majority vote of ray parity along +x, +y and +z: one hole flips at most the rays
-    through it, which the other two directions outvote.
-    """
-    n = grid.resolution
-    centres = grid.voxel_centres_world().reshape(-1, 3)
-    low, high = mesh_world.bounds
-    pad = grid.voxel_size_m
-    candidates = np.flatnonzero(np.all((centres >= low - pad) & (centres <= high + pad), axis=1))
-    inside = np.zeros(n**3, dtype=bool)
-    if len(candidates):
-        points = centres[candidates]
-        if mesh_world.is_watertight:
-            inside[candidates] = mesh_world.contains(points)
-        else:
-            inside[candidates] = _parity_vote(mesh_world, points)
-    return inside.reshape(n, n, n)
-
-
-def _parity_vote(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
-    votes = np.zeros(len(points), dtype=int)
-    for axis in range(3):
-        direction = np.zeros(3)
-        direction[axis] = 1.0
-        directions = np.broadcast_to(direction, points.shape)
-        _, ray_index, _ = mesh.ray.intersects_location(points, directions, multiple_hits=True)
-        crossings = np.bincount(ray_index, minlength=len(points))
-        votes += crossings % 2
-    return votes >= 2
 
 
 # --- one view -------------------------------------------------------------------------------------
@@ -334,7 +254,7 @@ def plan_shards(spec: BuildSpec) -> list[ShardTask]:
 
 
 def build_shard(spec: BuildSpec, task: ShardTask) -> Path:
-    """Render one shard and write it atomically (temporary file, then rename)."""
+    """Render one shard and write it atomically."""
     category_index = ALL_CATEGORIES.index(task.category) if task.category in ALL_CATEGORIES else -1
     rng_key = category_index if category_index >= 0 else sum(task.category.encode())
     views: list[dict[str, np.ndarray]] = []
@@ -353,11 +273,10 @@ def build_shard(spec: BuildSpec, task: ShardTask) -> Path:
     arrays["shape_index"] = np.repeat(np.arange(len(names)), spec.views)
     arrays["names"] = np.array(names)
     arrays["category"] = np.array(task.category)
-    path = shard_path(Path(spec.out_dir), task.index)
-    temporary = path.with_suffix(".tmp.npz")
-    np.savez_compressed(temporary, **arrays)
-    os.replace(temporary, path)
-    return path
+    return write_atomically(
+        shard_path(Path(spec.out_dir), task.index),
+        lambda temporary: np.savez_compressed(temporary, **arrays),
+    )
 
 
 def _build_shard_star(args: tuple[BuildSpec, ShardTask]) -> int:
@@ -403,7 +322,7 @@ def build_dataset(spec: BuildSpec, *, workers: int = 2, progress: bool = True) -
         ],
         "complete": False,
     }
-    existing.write_text(json.dumps(manifest, indent=2))
+    write_json_atomically(existing, manifest)
     jobs = [(spec, task) for task in todo]
     bar = tqdm(
         total=len(tasks), initial=len(tasks) - len(todo), desc="shards", disable=not progress
@@ -419,7 +338,7 @@ def build_dataset(spec: BuildSpec, *, workers: int = 2, progress: bool = True) -
                 bar.update()
     bar.close()
     manifest["complete"] = True
-    existing.write_text(json.dumps(manifest, indent=2))
+    write_json_atomically(existing, manifest)
     return manifest
 
 

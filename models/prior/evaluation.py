@@ -2,11 +2,11 @@
 
 Each object stands on the bench table at the object point and is seen by the deployment camera
 (full Kinect v2 colour frame, time-of-flight depth noise for RGB-D) in ``views`` random yaws.
-Held-out procedural shapes use shape seeds from :data:`models.prior.dataset.EVAL_SEED_START` on, never
-used for training data. Metrics per view: voxel IoU at 0.5 against the voxelised true mesh in the
-registered grid, Chamfer distance (mm, unsquared, pred->gt + gt->pred means over 10,000 surface
-samples each) and F-scores at 2 and 5 mm (see :mod:`models.metrics`); an object's numbers are the
-means over its views.
+Held-out procedural shapes use shape seeds from :data:`models.prior.dataset.EVAL_SEED_START` on,
+never used for training data. Metrics per view: voxel IoU at 0.5 against the voxelised true mesh
+in the registered grid, Chamfer distance (mm, unsquared, pred->gt + gt->pred means over 10,000
+surface samples each) and F-scores at 2 and 5 mm (see :mod:`models.metrics`); an object's numbers
+are the means over its views.
 """
 
 from __future__ import annotations
@@ -22,15 +22,11 @@ import trimesh
 from models.camera import CameraIntrinsics
 from models.geometry import VoxelGrid, axes_facing_camera, make_transform, rotation_about_axis
 from models.metrics import mesh_metrics, voxel_iou
-from models.prior.dataset import (
-    ALL_CATEGORIES,
-    EVAL_SEED_START,
-    procedural_shape,
-    shape_rngs,
-    voxelize,
-)
+from models.prior.dataset import EVAL_SEED_START, shape_rngs
 from models.prior.shape_prior import ShapePrior
+from models.procedural import ALL_CATEGORIES, procedural_shape
 from models.render import Scene, apply_kinect_depth_noise, render
+from models.shapes import voxelize
 
 
 @dataclass(frozen=True)

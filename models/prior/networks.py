@@ -11,10 +11,11 @@ and resolution come from a :class:`NetworkPreset`:
 * ``cpu``: the same topology at 128x128 input and 64^3 voxels with narrower layers (one 3D set
   fewer, since 64^3 needs one upsampling fewer), sized to train on two CPU cores.
 
-Sketch conventions (all images are crops from :mod:`models.prior.virtual_camera`, H = W = image_size):
-depth is "nearness" ``1 + (z_ref - z) / extent_m`` inside the silhouette and 0 outside (z the
-camera z-depth, z_ref the z-depth of the voxel grid's centre, extent_m the grid edge), normals are
-unit camera-frame (OpenCV) normals, 0 outside, and the silhouette is a logit map.
+Sketch conventions (all images are crops from :mod:`models.prior.virtual_camera`,
+H = W = image_size): depth is "nearness" ``1 + (z_ref - z) / extent_m`` inside the silhouette and
+0 outside (z the camera z-depth, z_ref the z-depth of the voxel grid's centre, extent_m the grid
+edge), normals are unit camera-frame (OpenCV) normals, 0 outside, and the silhouette is a logit
+map.
 Voxel outputs are indexed [i, j, k] in the :class:`models.geometry.VoxelGrid` frame.
 """
 

@@ -1,17 +1,18 @@
-"""Post-hoc calibration of the shape net's voxel probabilities (Platt scaling).
+"""Platt scaling of the shape net's voxel probabilities, folded into its last layer.
 
 Trained briefly with the paper's plain BCE, the shape net ranks voxels well but under-states
 occupancy: voxels are mostly empty, so early in training the occupied ones sit near the decoder's
-output bias (probability about 0.35) and nothing reaches 0.5. Platt scaling fits
-``p = sigmoid(a * logit + b)`` by BCE on sketches *predicted* by the sketch net (the deployed
-pipeline); ``b`` is then shifted (within +-3) to the value whose 0.5 threshold maximises the mean
-voxel IoU on the same views (the decision threshold the metrics use). Both are folded into the
-decoder's last transposed convolution, so the network keeps its architecture and
-``decode(latent)`` returns the calibrated probabilities that the touch policy's confidence
-``|v - 0.5|`` reads.
+output bias and nothing reaches 0.5. :class:`PlattScaling` fits ``p = sigmoid(a * logit + b)`` by
+BCE on sketches *predicted* by the sketch net (the deployed pipeline); ``b`` is then shifted
+(within +-3) to the value whose 0.5 threshold maximises the mean voxel IoU on the same views (the
+decision threshold the metrics use). Both are folded into the decoder's last transposed
+convolution, so the network keeps its architecture and ``decode(latent)`` returns the scaled
+probabilities that the touch policy's confidence ``|v - 0.5|`` reads. See docs/prior.md.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass, replace
 
 import torch
 import torch.nn.functional as F
@@ -44,47 +45,61 @@ def predicted_logits(
     return torch.cat(logits), torch.cat(truth)
 
 
-def fit_platt(logits: torch.Tensor, truth: torch.Tensor, steps: int = 100) -> tuple[float, float]:
-    """Scale a and offset b minimising BCE of sigmoid(a * logit + b) against 0/1 ``truth``."""
-    flat_logits, flat_truth = logits.flatten(), truth.flatten()
-    params = torch.tensor([1.0, 0.0], requires_grad=True)
-    optimizer = torch.optim.LBFGS([params], lr=0.5, max_iter=steps, line_search_fn="strong_wolfe")
+@dataclass(frozen=True)
+class PlattScaling:
+    """``p = sigmoid(scale * logit + offset)``: the shape net's logits rescaled."""
 
-    def closure() -> torch.Tensor:
-        optimizer.zero_grad()
-        loss = F.binary_cross_entropy_with_logits(params[0] * flat_logits + params[1], flat_truth)
-        loss.backward()
-        return loss
+    scale: float = 1.0
+    offset: float = 0.0
 
-    optimizer.step(closure)
-    scale, offset = params.detach().tolist()
-    return scale, offset
+    @classmethod
+    def fit(cls, logits: torch.Tensor, truth: torch.Tensor, steps: int = 100) -> PlattScaling:
+        """The scale and offset minimising BCE of the scaled logits against 0/1 ``truth``."""
+        flat_logits, flat_truth = logits.flatten(), truth.flatten()
+        params = torch.tensor([1.0, 0.0], requires_grad=True)
+        optimizer = torch.optim.LBFGS(
+            [params], lr=0.5, max_iter=steps, line_search_fn="strong_wolfe"
+        )
 
+        def closure() -> torch.Tensor:
+            optimizer.zero_grad()
+            loss = F.binary_cross_entropy_with_logits(
+                params[0] * flat_logits + params[1], flat_truth
+            )
+            loss.backward()
+            return loss
 
-@torch.no_grad()
-def iou_offset(
-    logits: torch.Tensor, truth: torch.Tensor, scale: float, offset: float, span: float = 3.0
-) -> float:
-    """The offset (near ``offset``, within +-``span``) whose 0.5 threshold maximises the mean
-    voxel IoU of ``sigmoid(scale * logit + offset)``: the decision threshold, folded into b."""
-    scaled = (scale * logits).flatten(1)
-    occupied = truth.flatten(1) > 0.5
+        optimizer.step(closure)
+        scale, offset = params.detach().tolist()
+        return cls(scale, offset)
 
-    def mean_iou(candidate: float) -> float:
-        predicted = scaled + candidate >= 0
-        intersection = (predicted & occupied).sum(1).float()
-        union = (predicted | occupied).sum(1).float().clamp(min=1)
-        return float((intersection / union).mean())
+    def apply(self, logits: torch.Tensor) -> torch.Tensor:
+        """The scaled logits."""
+        return self.scale * logits + self.offset
 
-    candidates = [offset + span * (k / 30.0 - 1.0) for k in range(61)]
-    return max(candidates, key=mean_iou)
+    @torch.no_grad()
+    def with_iou_offset(
+        self, logits: torch.Tensor, truth: torch.Tensor, span: float = 3.0
+    ) -> PlattScaling:
+        """The same scale with the offset (within +-``span`` of this one) whose 0.5 threshold
+        maximises the mean voxel IoU of the scaled probabilities: the decision threshold."""
+        scaled = (self.scale * logits).flatten(1)
+        occupied = truth.flatten(1) > 0.5
 
+        def mean_iou(candidate: float) -> float:
+            predicted = scaled + candidate >= 0
+            intersection = (predicted & occupied).sum(1).float()
+            union = (predicted | occupied).sum(1).float().clamp(min=1)
+            return float((intersection / union).mean())
 
-@torch.no_grad()
-def fold_platt(shape_net: ShapeNet, scale: float, offset: float) -> None:
-    """Make the decoder output ``scale * logit + offset`` by rescaling its last layer in place."""
-    last = shape_net.decoder.layers[-1]
-    if not isinstance(last, nn.ConvTranspose3d) or last.bias is None:
-        raise TypeError("the decoder must end in a ConvTranspose3d with a bias")
-    last.weight.mul_(scale)
-    last.bias.mul_(scale).add_(offset)
+        candidates = [self.offset + span * (k / 30.0 - 1.0) for k in range(61)]
+        return replace(self, offset=max(candidates, key=mean_iou))
+
+    @torch.no_grad()
+    def fold_into(self, shape_net: ShapeNet) -> None:
+        """Make the decoder output the scaled logits by rescaling its last layer in place."""
+        last = shape_net.decoder.layers[-1]
+        if not isinstance(last, nn.ConvTranspose3d) or last.bias is None:
+            raise TypeError("the decoder must end in a ConvTranspose3d with a bias")
+        last.weight.mul_(self.scale)
+        last.bias.mul_(self.scale).add_(self.offset)

@@ -1,8 +1,8 @@
 """Named shape priors: image (+ optional depth) -> voxel occupancy in the registered grid.
 
 A prior is a 2.5D sketch net and a shape net of one preset, loaded by name from a weights folder
-holding ``priors.json`` (the committed ``models/prior/weights/`` by default). The shape net's decoder is
-the learned prior that touch refinement optimises through :meth:`ShapePrior.decode`.
+holding ``priors.json`` (the committed ``models/prior/weights/`` by default). The shape net's
+decoder is the learned prior that touch refinement optimises through :meth:`ShapePrior.decode`.
 
 Frames: the prediction is indexed [i, j, k] in the :class:`models.geometry.VoxelGrid` registered
 with the camera (``VoxelGridConfig.grid(camera_position)``: bottom centre on the object point, a_x
@@ -150,7 +150,7 @@ class ShapePrior:
         """The prior a config's ``[models]`` section names (``prior``, ``preset``,
         ``weights_dir`` with "" = shipped weights, ``device``)."""
         return cls.load(
-            models.prior.shape_prior,
+            models.prior,
             preset=models.preset,
             weights_dir=models.weights_dir or None,
             device=models.device,

@@ -29,6 +29,7 @@ import torch.distributed as dist
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from models.files import write_atomically, write_json_atomically
 from models.metrics import voxel_iou
 from models.prior.dataset import SketchVoxelDataset, split_by_shape
 from models.prior.networks import (
@@ -152,10 +153,12 @@ def _batches(dataset: SketchVoxelDataset, indices: list[int], batch_size: int):
 
 
 def save_weights(model: nn.Module, stage: Stage, preset: str, path: str | Path) -> None:
-    """Network weights only, in float16 (half the size; inference runs in float32)."""
+    """Network weights only, in float16 (half the size; inference runs in float32), written
+    atomically."""
     module = model.module if hasattr(model, "module") else model
     state = {k: v.half() if v.is_floating_point() else v for k, v in module.state_dict().items()}
-    torch.save({"stage": stage, "preset": preset, "state_dict": state}, path)
+    blob = {"stage": stage, "preset": preset, "state_dict": state}
+    write_atomically(Path(path), lambda temporary: torch.save(blob, temporary))
 
 
 def load_weights(model: nn.Module, path: str | Path) -> dict:
@@ -237,25 +240,22 @@ def train(config: TrainConfig, *, progress: bool = True) -> dict:
         log.info("resumed from %s at epoch %d batch %d", checkpoint, epoch, batch_in_epoch)
     metrics_file = out_dir / "metrics.jsonl"
     if env.main:
-        (out_dir / "config.json").write_text(json.dumps(asdict(config), indent=2))
+        write_json_atomically(out_dir / "config.json", asdict(config))
 
     def save_checkpoint() -> None:
         if not env.main:
             return
         core = model.module if env.world > 1 else model
-        torch.save(
-            {
-                "model": core.state_dict(),
-                "optimizer": optimizer.state_dict(),
-                "epoch": epoch,
-                "batch_in_epoch": batch_in_epoch,
-                "step": step,
-                "trained_s": trained_s,
-                "config": asdict(config),
-            },
-            checkpoint.with_suffix(".tmp"),
-        )
-        os.replace(checkpoint.with_suffix(".tmp"), checkpoint)
+        snapshot = {
+            "model": core.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "epoch": epoch,
+            "batch_in_epoch": batch_in_epoch,
+            "step": step,
+            "trained_s": trained_s,
+            "config": asdict(config),
+        }
+        write_atomically(checkpoint, lambda temporary: torch.save(snapshot, temporary))
 
     def write(record: dict) -> None:
         if env.main:

@@ -1,14 +1,15 @@
-"""GelSight calibration: a position-aware lookup table image colour -> surface gradients.
+"""The GelSight lookup table (LUT): image colour -> surface gradients, position-aware.
 
 The paper inverts the sensor's reflectance with a table built from presses of a ball of known
-radius: inside each press the surface gradients are known analytically, so every pixel gives
-one (colour change, gradient) sample. This module builds that table, with two changes that the
-real data asks for (measured on taxim's 48 real presses, see docs/gelsight.md):
+radius (the sensor's calibration): inside each press the surface gradients are known
+analytically, so every pixel gives one (colour change, gradient) sample. This module reads the
+presses, builds that table and stores it, with two changes that the real data asks for (see
+docs/gelsight.md):
 
-- **Position-aware.** Illumination varies across the pad (the same slope changes the colour up
-  to 2.5x more in one place than in another), so the pad is cut into square tiles and every
-  tile has its own table, built from the samples near it (Gaussian weights over the sample's
-  pixel position) and shrunk toward the whole-pad table where it has few samples.
+- **Position-aware.** Illumination varies across the pad (the same slope changes the colour
+  more in one place than in another), so the pad is cut into square tiles and every tile has
+  its own table, built from the samples near it (Gaussian weights over the sample's pixel
+  position) and shrunk toward the whole-pad table where it has few samples.
 - **No false "flat" labels.** The gel sinks in a skirt around the annotated contact circle;
   labelling those pixels flat teaches the table that sloped colours mean zero slope. Pixels
   between 1 and 2 contact radii are left out, and flat pixels (beyond) are down-weighted so
@@ -25,8 +26,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
-import tempfile
 import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -39,8 +38,11 @@ import scipy.sparse
 from numpy.typing import NDArray
 from PIL import Image
 
+from models.files import write_atomically
+
 ImageBGR = NDArray[np.uint8]
 
+# The file format of a saved table, named after the calibration that produces it.
 FORMAT_NAME = "touchshape-gelsight-calibration"
 FORMAT_VERSION = 1
 
@@ -48,37 +50,36 @@ FORMAT_VERSION = 1
 DATAPACK_BALL_RADIUS_MM = 2.0
 DATAPACK_MM_PER_PX = 0.0295
 
-# Colour changes are binned per channel in steps of 8 grey levels centred on 0 and clipped at
-# +-64 (17 levels, 4913 colours): finer steps or a wider range changed no held-out figure.
+# Colour changes are binned per channel in steps of COLOUR_STEP grey levels centred on 0 and
+# clipped at +-COLOUR_LIMIT: finer steps or a wider range did not improve held-out presses.
 COLOUR_STEP = 8
 COLOUR_LIMIT = 64
-# Tiles of 80 px with Gaussian sample weights of the same width: 48 tables on 640x480. Smaller
-# tiles or narrower weights leave too few presses per tile (24 presses calibrate the pad).
+# Tile edge, which is also the width of the Gaussian sample weights. Smaller tiles or narrower
+# weights leave too few presses per tile.
 TILE_PX = 80
-# Samples are pooled in cells of this size before the per-tile weighting (a cell is small
-# against the 80 px weight width, so pooling changes the weights by < 1 %).
+# Samples are pooled in cells of this size before the per-tile weighting; a cell is small
+# against the weight width, so pooling barely changes the weights.
 _CELL_PX = 16
 # A tile's table is (tile samples + PRIOR_COUNT x whole-pad mean) / (tile weight + PRIOR_COUNT):
 # where a tile saw a colour only a few times it leans on the whole pad.
 PRIOR_COUNT = 5.0
 # Pixels between 1 and SKIRT_FACTOR contact radii are not labelled: the gel there sinks by an
-# unknown amount (the skirt around the ball; the simulator's membrane, fitted to these presses,
-# reaches ~0.8 contact radii past the circle). Labelling them flat makes the table read small
-# slopes as flat: at 1.5 a simulated 10 mm ball's press reads 55 % too shallow, at 2.0 30 %,
-# while the held-out RMSE moves from 0.061 to 0.065 mm.
+# unknown amount (the skirt around the ball). Labelling them flat makes the table read small
+# slopes as flat, so larger, flatter objects come out too shallow.
 SKIRT_FACTOR = 2.0
-# Flat pixels outnumber contact pixels ~25:1; at full weight they pull the table's small slopes
-# toward zero (held-out slopes of 0.1-0.2, mean 0.155, read 0.095 on average; at 0.1, 0.123).
+# Weight of a flat pixel (beyond the skirt) against a contact pixel's 1: flat pixels far
+# outnumber contact pixels, and at full weight they pull the table's small slopes toward zero.
 FLAT_WEIGHT = 0.1
 
 
-class CalibrationError(ValueError):
-    """A calibration file or calibration input is unusable; the message names the problem."""
+class GelSightLUTError(ValueError):
+    """A lookup-table file or its input (presses, frames, images) is unusable; the message names
+    the problem."""
 
 
 @dataclass(frozen=True)
 class BallPress:
-    """One calibration image: a ball pressed into the pad, its contact circle annotated."""
+    """One calibration press: a ball pressed into the pad, its contact circle annotated."""
 
     image_bgr: ImageBGR
     centre_px: tuple[float, float]
@@ -116,21 +117,21 @@ def load_datapack(path: Path | str) -> DataPack:
         with np.load(path) as pack:
             missing = {"f0", "imgs", "touch_center", "touch_radius"} - set(pack.files)
             if missing:
-                raise CalibrationError(f"dataPack {path} lacks {sorted(missing)}")
+                raise GelSightLUTError(f"dataPack {path} lacks {sorted(missing)}")
             reference = np.asarray(pack["f0"])
             images = np.asarray(pack["imgs"])
             centres = np.asarray(pack["touch_center"], dtype=np.float64)
             radii = np.asarray(pack["touch_radius"], dtype=np.float64)
             names = tuple(str(n) for n in pack["names"]) if "names" in pack.files else ()
     except (zipfile.BadZipFile, OSError, EOFError) as error:
-        raise CalibrationError(f"dataPack {path} is not a readable .npz file: {error}") from None
+        raise GelSightLUTError(f"dataPack {path} is not a readable .npz file: {error}") from None
     check_image(reference, "dataPack reference f0")
     if images.ndim != 4 or images.shape[1:] != reference.shape or images.dtype != np.uint8:
-        raise CalibrationError(
+        raise GelSightLUTError(
             f"dataPack {path}: imgs {images.shape} {images.dtype} do not match f0 {reference.shape}"
         )
     if centres.shape != (len(images), 2) or radii.shape != (len(images),):
-        raise CalibrationError(
+        raise GelSightLUTError(
             f"dataPack {path}: {len(images)} images but touch_center {centres.shape},"
             f" touch_radius {radii.shape}"
         )
@@ -147,29 +148,29 @@ def parse_frames(spec: str, count: int) -> list[int]:
         try:
             frames = [int(part) for part in spec.split(",") if part.strip()]
         except ValueError:
-            raise CalibrationError(
+            raise GelSightLUTError(
                 f"frames {spec!r}: give all, even, odd or comma-separated indices"
             ) from None
         outside = [f for f in frames if not 0 <= f < count]
         if outside:
-            raise CalibrationError(f"frames {outside} out of range: the dataPack has {count}")
+            raise GelSightLUTError(f"frames {outside} out of range: the dataPack has {count}")
     if not frames:
-        raise CalibrationError(f"frame list {spec!r} is empty")
+        raise GelSightLUTError(f"frame list {spec!r} is empty")
     return frames
 
 
 def check_image(image: NDArray[Any], what: str, shape: tuple[int, int] | None = None) -> None:
-    """Raise a CalibrationError naming ``what`` unless it is an HxWx3 uint8 image (of ``shape``)."""
+    """Raise a GelSightLUTError naming ``what`` unless it is an HxWx3 uint8 image (of ``shape``)."""
     if image.ndim != 3 or image.shape[2] != 3:
         channels = 1 if image.ndim == 2 else (image.shape[2] if image.ndim == 3 else "?")
-        raise CalibrationError(
+        raise GelSightLUTError(
             f"{what} has {channels} channel(s), shape {image.shape}: GelSight frames are"
             " 3-channel colour (HxWx3)"
         )
     if image.dtype != np.uint8:
-        raise CalibrationError(f"{what} is {image.dtype}: GelSight frames are 8-bit (uint8)")
+        raise GelSightLUTError(f"{what} is {image.dtype}: GelSight frames are 8-bit (uint8)")
     if shape is not None and image.shape[:2] != tuple(shape):
-        raise CalibrationError(
+        raise GelSightLUTError(
             f"{what} is {image.shape[1]}x{image.shape[0]} px, the calibration is for"
             f" {shape[1]}x{shape[0]}"
         )
@@ -188,13 +189,13 @@ def read_image_bgr(path: Path | str) -> ImageBGR:
         with Image.open(path) as image:
             bands = image.getbands()
             if bands != ("R", "G", "B"):
-                raise CalibrationError(
+                raise GelSightLUTError(
                     f"image {path} has {len(bands)} channel(s) ({image.mode}): GelSight frames"
                     " are 3-channel colour"
                 )
             rgb = np.asarray(image.convert("RGB"))
     except (OSError, Image.DecompressionBombError) as error:
-        raise CalibrationError(f"image {path} cannot be read: {error}") from None
+        raise GelSightLUTError(f"image {path} cannot be read: {error}") from None
     return np.ascontiguousarray(rgb[:, :, ::-1])
 
 
@@ -213,17 +214,17 @@ def load_press_folder(folder: Path | str, csv_path: Path | str) -> list[BallPres
         reader = csv.DictReader(file)
         missing = [c for c in columns if c not in (reader.fieldnames or [])]
         if missing:
-            raise CalibrationError(f"press CSV {csv_path} lacks column(s) {missing}")
+            raise GelSightLUTError(f"press CSV {csv_path} lacks column(s) {missing}")
         rows = list(reader)
     if not rows:
-        raise CalibrationError(f"press CSV {csv_path} lists no images: the frame list is empty")
+        raise GelSightLUTError(f"press CSV {csv_path} lists no images: the frame list is empty")
     presses = []
     for line, row in enumerate(rows, start=2):
         try:
             centre = (float(row["center_x_px"]), float(row["center_y_px"]))
             radius = float(row["radius_px"])
         except (TypeError, ValueError):
-            raise CalibrationError(f"press CSV {csv_path} line {line}: not a number") from None
+            raise GelSightLUTError(f"press CSV {csv_path} line {line}: not a number") from None
         image = read_image_bgr(folder / row["image"])
         presses.append(BallPress(image, centre, radius, row["image"]))
     return presses
@@ -251,7 +252,7 @@ def tile_grid(shape: tuple[int, int], tile_px: int) -> tuple[NDArray[np.int32], 
 
 
 @dataclass(frozen=True)
-class GelSightCalibration:
+class GelSightLUT:
     """Position-aware lookup table (tile, colour) -> indentation gradients, with its metadata.
 
     ``table_gx`` / ``table_gy`` (float32) hold dh/dx and dh/dy (dimensionless, x = image
@@ -301,58 +302,54 @@ class GelSightCalibration:
         }
 
     def save(self, path: Path | str) -> Path:
-        """Write the calibration as a versioned .npz, atomically (temp file, then rename)."""
+        """Write the table as a versioned .npz, atomically."""
         path = Path(path)
         if path.is_dir():
-            raise CalibrationError(f"calibration output {path} is a folder: give a file name")
-        path.parent.mkdir(parents=True, exist_ok=True)
-        handle, temp_name = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-        try:
-            os.fchmod(handle, 0o644)  # mkstemp makes it private; a calibration is shareable
-            with os.fdopen(handle, "wb") as file:
+            raise GelSightLUTError(f"calibration output {path} is a folder: give a file name")
+
+        def write(temporary: Path) -> None:
+            # Through a file object, so that np.savez adds no ".npz" to another suffix.
+            with temporary.open("wb") as file:
                 np.savez(
                     file,
                     metadata=np.array(json.dumps(self.metadata())),
                     table_gx=self.table_gx,
                     table_gy=self.table_gy,
                 )
-            os.replace(temp_name, path)
-        except BaseException:
-            Path(temp_name).unlink(missing_ok=True)
-            raise
-        return path
+
+        return write_atomically(path, write)
 
     @classmethod
-    def load(cls, path: Path | str) -> GelSightCalibration:
-        """Read and check a calibration file; a CalibrationError says what is wrong with it."""
+    def load(cls, path: Path | str) -> GelSightLUT:
+        """Read and check a calibration file; a GelSightLUTError says what is wrong with it."""
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"calibration {path} does not exist")
         try:
             with np.load(path) as data:
                 if "metadata" not in data.files:
-                    raise CalibrationError(
+                    raise GelSightLUTError(
                         f"calibration {path} has no metadata: not a touchshape GelSight calibration"
                     )
                 meta = json.loads(str(data["metadata"]))
                 table_gx = np.asarray(data["table_gx"])
                 table_gy = np.asarray(data["table_gy"])
         except (zipfile.BadZipFile, OSError, EOFError, KeyError, ValueError) as error:
-            if isinstance(error, CalibrationError):
+            if isinstance(error, GelSightLUTError):
                 raise
-            raise CalibrationError(
+            raise GelSightLUTError(
                 f"calibration {path} is corrupt or not a touchshape GelSight calibration"
                 f" (.npz): {error}"
             ) from None
         if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
-            raise CalibrationError(f"calibration {path} is not a {FORMAT_NAME} file")
+            raise GelSightLUTError(f"calibration {path} is not a {FORMAT_NAME} file")
         if meta.get("version") != FORMAT_VERSION:
-            raise CalibrationError(
+            raise GelSightLUTError(
                 f"calibration {path} has format version {meta.get('version')}; this touchshape"
                 f" reads version {FORMAT_VERSION}: calibrate again"
             )
         try:
-            calibration = cls(
+            lut = cls(
                 table_gx=table_gx.astype(np.float32, copy=False),
                 table_gy=table_gy.astype(np.float32, copy=False),
                 image_shape=(int(meta["image_height_px"]), int(meta["image_width_px"])),
@@ -365,25 +362,25 @@ class GelSightCalibration:
                 tile_px=int(meta["tile_px"]),
             )
         except (KeyError, TypeError, ValueError) as error:
-            raise CalibrationError(f"calibration {path}: bad metadata ({error})") from None
-        calibration.validate(str(path))
-        return calibration
+            raise GelSightLUTError(f"calibration {path}: bad metadata ({error})") from None
+        lut.validate(str(path))
+        return lut
 
-    def validate(self, name: str = "calibration") -> None:
+    def validate(self, name: str = "lookup table") -> None:
         """Check that tables and metadata agree (sizes, finite values, positive scales)."""
         if min(self.image_shape) < 2 or self.mm_per_px <= 0 or self.ball_radius_mm <= 0:
-            raise CalibrationError(f"{name}: image size and scales must be positive")
+            raise GelSightLUTError(f"{name}: image size and scales must be positive")
         if self.colour_step <= 0 or self.colour_limit < self.colour_step or self.tile_px <= 0:
-            raise CalibrationError(f"{name}: bad colour binning or tile size")
+            raise GelSightLUTError(f"{name}: bad colour binning or tile size")
         expected = self.tile_count * self.levels**3
         for label, table in (("table_gx", self.table_gx), ("table_gy", self.table_gy)):
             if table.shape != (expected,):
-                raise CalibrationError(
+                raise GelSightLUTError(
                     f"{name}: {label} has shape {table.shape}, the metadata implies ({expected},)"
                     " - the file is corrupt or mismatched"
                 )
             if not np.all(np.isfinite(table)):
-                raise CalibrationError(f"{name}: {label} has non-finite values (corrupt)")
+                raise GelSightLUTError(f"{name}: {label} has non-finite values (corrupt)")
 
 
 def sphere_gradients(
@@ -404,14 +401,14 @@ def sphere_gradients(
     return np.where(inside, -dx / root, 0.0), np.where(inside, -dy / root, 0.0), inside
 
 
-def calibrate(
+def build_lut(
     presses: Sequence[BallPress],
     reference_bgr: ImageBGR,
     *,
     ball_radius_mm: float,
     mm_per_px: float,
     source: str = "",
-) -> GelSightCalibration:
+) -> GelSightLUT:
     """Build the position-aware lookup table from ball presses and the no-contact frame.
 
     Every press contributes its contact-circle pixels (analytic sphere-cap gradients, weight 1)
@@ -420,11 +417,11 @@ def calibrate(
     toward the whole-pad mean. Colours never seen map to zero slope.
     """
     if not presses:
-        raise CalibrationError("no presses to calibrate from: the frame list is empty")
+        raise GelSightLUTError("no presses to calibrate from: the frame list is empty")
     check_image(reference_bgr, "reference image")
     shape = reference_bgr.shape[:2]
     if ball_radius_mm <= 0 or mm_per_px <= 0:
-        raise CalibrationError("ball radius and mm per pixel must be positive")
+        raise GelSightLUTError("ball radius and mm per pixel must be positive")
     ball_radius_px = ball_radius_mm / mm_per_px
     level_lut, levels = colour_level_luts(COLOUR_STEP, COLOUR_LIMIT)
     colours = levels**3
@@ -437,7 +434,7 @@ def calibrate(
     for press in presses:
         check_image(press.image_bgr, f"press {press.name}", shape)
         if not 0 < press.radius_px < ball_radius_px:
-            raise CalibrationError(
+            raise GelSightLUTError(
                 f"press {press.name}: contact radius {press.radius_px} px must lie in (0,"
                 f" {ball_radius_px:.1f}) px, the ball's radius"
             )
@@ -486,7 +483,7 @@ def calibrate(
     # A colour no press showed anywhere says nothing: read it as flat.
     table_x[:, ~seen] = 0.0
     table_y[:, ~seen] = 0.0
-    calibration = GelSightCalibration(
+    lut = GelSightLUT(
         table_gx=table_x.astype(np.float32).ravel(),
         table_gy=table_y.astype(np.float32).ravel(),
         image_shape=(int(shape[0]), int(shape[1])),
@@ -498,22 +495,22 @@ def calibrate(
         colour_limit=COLOUR_LIMIT,
         tile_px=TILE_PX,
     )
-    calibration.validate()
-    return calibration
+    lut.validate()
+    return lut
 
 
-def calibrate_datapack(
+def build_lut_from_datapack(
     pack: DataPack,
     frames: Sequence[int],
     *,
     ball_radius_mm: float = DATAPACK_BALL_RADIUS_MM,
     mm_per_px: float = DATAPACK_MM_PER_PX,
     source: str = "",
-) -> GelSightCalibration:
-    """:func:`calibrate` on frames of a dataPack, against its no-contact frame ``f0``."""
+) -> GelSightLUT:
+    """:func:`build_lut` on frames of a dataPack, against its no-contact frame ``f0``."""
     if not frames:
-        raise CalibrationError("no presses to calibrate from: the frame list is empty")
-    return calibrate(
+        raise GelSightLUTError("no presses to calibrate from: the frame list is empty")
+    return build_lut(
         [pack.press(i) for i in frames],
         pack.reference_bgr,
         ball_radius_mm=ball_radius_mm,

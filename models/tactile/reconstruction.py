@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from models.geometry import transform_directions, transform_points
 from models.tactile.lut import (
-    GelSightCalibration,
+    GelSightLUT,
     ImageBGR,
     check_image,
     colour_level_luts,
@@ -32,23 +32,21 @@ from models.tactile.lut import (
 
 FloatImage = NDArray[np.float32]
 
-# Contact = pixels indented at least this fraction of the frame's peak (and MIN_CONTACT_MM):
-# on the real ball presses the reconstructed gel at the annotated contact circle lies at
-# 0.31-0.45 of the peak (the skirt outside falls off steeply); the mask matches the circles
-# with a median IoU of 0.90.
+# Contact = pixels indented at least this fraction of the frame's peak (and MIN_CONTACT_MM): on
+# real ball presses the reconstructed gel at the annotated contact circle lies a little above
+# this fraction of the peak, and the skirt outside falls off steeply.
 CONTACT_FRACTION = 0.3
-# Below this peak indentation a frame has no contact: the far field (beyond 3 contact radii)
-# of the real held-out frames reconstructs to at most 0.08 mm (median of the maxima 0.03 mm).
+# Below this peak indentation a frame has no contact: above the height that the far field of
+# real no-contact regions reconstructs to.
 MIN_CONTACT_MM = 0.1
-# An imprint reaching the border is solved with a free border. In the 8 px border strip
-# (~18,000 px) of noisy no-contact frames 36-49 pixels slope by >= 0.1 (lookup noise in a few
-# tiles); edge imprints on the simulated bench give 1,600-5,000.
+# An imprint reaching the border is solved with a free border: when at least
+# BORDER_IMPRINT_PIXELS of the BORDER_STRIP_PX border strip slope by BORDER_IMPRINT_SLOPE or more,
+# far more than lookup noise gives on no-contact frames and far fewer than an edge imprint.
 BORDER_STRIP_PX = 8
 BORDER_IMPRINT_SLOPE = 0.1
 BORDER_IMPRINT_PIXELS = 500
-# A free-border solve is known only up to its level and drifts at the imprint's shallow fringe:
-# on a box edge pressed across the pad, the pixels above 0.3 of the peak lay up to 4.5 mm off
-# the true surface (90th percentile 3.9 mm), those above 0.5 of it within 1.3 mm (0.5 mm).
+# A free-border solve is known only up to its level and drifts at the imprint's shallow fringe,
+# so its contact mask keeps only the deeper part of the imprint.
 FREE_BORDER_CONTACT_FRACTION = 0.5
 
 
@@ -58,8 +56,8 @@ class PoissonSolver:
     The height is zero half a pixel outside the image (odd extension about the border), which
     is what the type-II sine transform diagonalises. Its lengths are the image's own, 480 and
     640 (2N = 960, 1280: products of 2, 3, 5), where the textbook DST-I on the (H-2)x(W-2)
-    interior needs lengths whose 2(N+1) = 958 = 2 x 479 is prime: 12.6 ms against 1.8 ms
-    forward + inverse here in float32 (float64 takes 3-4x longer again).
+    interior needs lengths whose 2(N+1) = 958 = 2 x 479 is prime, which is several times slower
+    (timings in docs/gelsight.md). float32 throughout: float64 is slower again.
     """
 
     def __init__(self, shape: tuple[int, int], mm_per_px: float) -> None:
@@ -142,41 +140,40 @@ class TactileReconstruction:
 
 
 class TactileReconstructor:
-    """Reconstructs frames of one sensor session: a calibration plus that session's reference.
+    """Reconstructs frames of one sensor session: a lookup table plus that session's
+    reference.
 
     Construction prepares everything that does not change per frame (colour-level lookups,
     tile offsets, the Poisson spectrum), so a 640x480 frame costs a few milliseconds on one
-    thread. Frames must be uint8 BGR of the calibration's size.
+    thread. Frames must be uint8 BGR of the table's image size.
     """
 
-    def __init__(self, calibration: GelSightCalibration, reference_bgr: ImageBGR) -> None:
-        calibration.validate()
-        check_image(reference_bgr, "reference image", calibration.image_shape)
-        self.calibration = calibration
-        level_lut, levels = colour_level_luts(calibration.colour_step, calibration.colour_limit)
+    def __init__(self, lut: GelSightLUT, reference_bgr: ImageBGR) -> None:
+        lut.validate()
+        check_image(reference_bgr, "reference image", lut.image_shape)
+        self.lut = lut
+        level_lut, levels = colour_level_luts(lut.colour_step, lut.colour_limit)
         # The colour index is B * levels^2 + G * levels + R: one lookup per channel that already
         # carries its stride, then two integer additions.
         self._lut_b = level_lut * np.int32(levels * levels)
         self._lut_g = level_lut * np.int32(levels)
         self._lut_r = level_lut
-        tiles, _, _ = tile_grid(calibration.image_shape, calibration.tile_px)
+        tiles, _, _ = tile_grid(lut.image_shape, lut.tile_px)
         self._tile_offset = tiles * np.int32(levels**3)
         # image + (255 - reference) = image - reference + 255 in [0, 510], the lookups' index.
         self._reference_shifted = 255 - reference_bgr.astype(np.int16)
-        self._solver = PoissonSolver(calibration.image_shape, calibration.mm_per_px)
-        self._free_border_solver = FreeBorderPoissonSolver(
-            calibration.image_shape, calibration.mm_per_px
-        )
+        self._solver = PoissonSolver(lut.image_shape, lut.mm_per_px)
+        self._free_border_solver = FreeBorderPoissonSolver(lut.image_shape, lut.mm_per_px)
 
     def gradients(self, image_bgr: ImageBGR) -> tuple[FloatImage, FloatImage]:
         """Indentation slopes dh/dx, dh/dy (dimensionless, x = columns, y = rows) per pixel."""
-        check_image(image_bgr, "image", self.calibration.image_shape)
+        check_image(image_bgr, "image", self.lut.image_shape)
         shifted = image_bgr + self._reference_shifted
         index = self._lut_b.take(shifted[..., 0])
         index += self._lut_g.take(shifted[..., 1])
         index += self._lut_r.take(shifted[..., 2])
         index += self._tile_offset
-        return self.calibration.table_gx.take(index), self.calibration.table_gy.take(index)
+        return self.lut.table_gx.take(index), self.lut.table_gy.take(index)
 
     def height_map_mm(self, image_bgr: ImageBGR) -> FloatImage:
         """Indentation (mm, HxW float32, >= 0) of the gel in ``image_bgr``."""
@@ -187,7 +184,7 @@ class TactileReconstructor:
         height, free_border = self._solve(image_bgr)
         fraction = FREE_BORDER_CONTACT_FRACTION if free_border else CONTACT_FRACTION
         mask = contact_mask(height, fraction=fraction)
-        return TactileReconstruction(height, mask, self.calibration.mm_per_px)
+        return TactileReconstruction(height, mask, self.lut.mm_per_px)
 
     def _solve(self, image_bgr: ImageBGR) -> tuple[FloatImage, bool]:
         """Height map, and whether the imprint ran off the border (free-border solve)."""

@@ -62,13 +62,13 @@ class GelPadSpec:
     gel_thickness_mm: float = 2.0
     # Deepest the gel can be compressed: beyond this the object bottoms out on the backing.
     max_indentation_mm: float = 1.5
-    # Width of the sink-in skirt around a contact. Rendering the real ball presses of Taxim's
-    # dataPack fits the ring around them best for 0.5-0.8 mm (0.3 mm is clearly worse).
+    # Width of the sink-in skirt around a contact, fitted to the ring around the real ball
+    # presses of Taxim's dataPack.
     elastic_sigma_mm: float = 0.5
     # Silicone elastomers of GelSight pads are ~0.1-0.5 MPa.
     youngs_modulus_mpa: float = 0.3
-    # Per-channel camera noise in 8-bit units (frame-to-frame differences of the real dataPack
-    # frames give 1.0-1.9 incl. lighting drift).
+    # Per-channel camera noise in 8-bit units, as in the frame-to-frame differences of the real
+    # dataPack frames.
     noise_sigma: float = 1.5
 
     def __post_init__(self) -> None:

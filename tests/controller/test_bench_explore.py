@@ -13,14 +13,13 @@ import trimesh
 from controller.benchmarks.explore import (
     METHODS,
     ExploreSettings,
-    SimTouchBench,
     TouchTrial,
     choose_oracle_trial,
     file_objects,
-    plot_curves,
     run_explore_benchmark,
-    summarise,
 )
+from controller.benchmarks.explore_summary import plot_curves, summarise
+from controller.benchmarks.sim_touch import SimTouchBench
 from controller.cli.main import build_parser
 from controller.config import Config
 from controller.perception.learned import LearnedPerception, load_calibration

@@ -1,6 +1,6 @@
 """Sessions whose shape estimate is wrong, on the simulated bench: the planner keeps its margin
 from where the object may be, the approach stops on the first light force, and a fault retreats
-the way the arm came (issue 6: sessions on the sim bench complete without protective stops)."""
+the way the arm came (sessions on the sim bench complete without protective stops)."""
 
 from __future__ import annotations
 

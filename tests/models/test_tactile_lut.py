@@ -1,4 +1,4 @@
-"""GelSight calibration: frames, analytic sphere gradients, the table, files and their errors."""
+"""GelSight lookup table: frames, analytic sphere gradients, the table, files and their errors."""
 
 from __future__ import annotations
 
@@ -12,11 +12,11 @@ from PIL import Image
 
 from models.tactile.lut import (
     FORMAT_VERSION,
-    CalibrationError,
     DataPack,
-    GelSightCalibration,
-    calibrate,
-    calibrate_datapack,
+    GelSightLUT,
+    GelSightLUTError,
+    build_lut,
+    build_lut_from_datapack,
     check_image,
     default_datapack_path,
     load_datapack,
@@ -35,8 +35,8 @@ def pack() -> DataPack:
 
 
 @pytest.fixture(scope="module")
-def small_calibration(pack: DataPack) -> GelSightCalibration:
-    return calibrate_datapack(pack, FEW_FRAMES)
+def small_calibration(pack: DataPack) -> GelSightLUT:
+    return build_lut_from_datapack(pack, FEW_FRAMES)
 
 
 def save_png(path: Path, image_bgr: np.ndarray) -> Path:
@@ -58,13 +58,13 @@ def test_parse_frames() -> None:
     assert parse_frames("even", 5) == [0, 2, 4]
     assert parse_frames("odd", 5) == [1, 3]
     assert parse_frames("3, 1,", 5) == [3, 1]
-    with pytest.raises(CalibrationError, match="empty"):
+    with pytest.raises(GelSightLUTError, match="empty"):
         parse_frames("", 5)
-    with pytest.raises(CalibrationError, match="empty"):
+    with pytest.raises(GelSightLUTError, match="empty"):
         parse_frames("odd", 1)
-    with pytest.raises(CalibrationError, match=r"\[7\] out of range"):
+    with pytest.raises(GelSightLUTError, match=r"\[7\] out of range"):
         parse_frames("1,7", 5)
-    with pytest.raises(CalibrationError, match="comma-separated"):
+    with pytest.raises(GelSightLUTError, match="comma-separated"):
         parse_frames("1-3", 5)
 
 
@@ -88,7 +88,7 @@ def test_sphere_gradients_are_the_cap_slopes() -> None:
     np.testing.assert_allclose(gy[core], d_rows[core], rtol=5e-3, atol=1e-4)
 
 
-def test_calibration_table_and_metadata(small_calibration: GelSightCalibration) -> None:
+def test_calibration_table_and_metadata(small_calibration: GelSightLUT) -> None:
     calibration = small_calibration
     assert calibration.image_shape == (480, 640)
     assert calibration.tile_count == 48 and calibration.levels == 17
@@ -108,10 +108,10 @@ def test_calibration_table_and_metadata(small_calibration: GelSightCalibration) 
     assert np.abs(calibration.table_gx).max() > 1.0
 
 
-def test_save_load_round_trip(small_calibration: GelSightCalibration, tmp_path: Path) -> None:
+def test_save_load_round_trip(small_calibration: GelSightLUT, tmp_path: Path) -> None:
     path = small_calibration.save(tmp_path / "sub" / "calib.npz")
     assert sorted(p.name for p in path.parent.iterdir()) == ["calib.npz"]  # no temp left
-    loaded = GelSightCalibration.load(path)
+    loaded = GelSightLUT.load(path)
     np.testing.assert_array_equal(loaded.table_gx, small_calibration.table_gx)
     np.testing.assert_array_equal(loaded.table_gy, small_calibration.table_gy)
     assert dataclasses.replace(loaded, table_gx=None, table_gy=None) == dataclasses.replace(
@@ -126,26 +126,26 @@ def _write_npz(path: Path, **arrays: np.ndarray) -> Path:
 
 
 def test_corrupt_or_mismatched_files_are_named(
-    small_calibration: GelSightCalibration, tmp_path: Path
+    small_calibration: GelSightLUT, tmp_path: Path
 ) -> None:
     with pytest.raises(FileNotFoundError, match="does not exist"):
-        GelSightCalibration.load(tmp_path / "missing.npz")
+        GelSightLUT.load(tmp_path / "missing.npz")
 
     garbage = tmp_path / "garbage.npz"
     garbage.write_bytes(b"not a zip file at all")
-    with pytest.raises(CalibrationError, match="corrupt"):
-        GelSightCalibration.load(garbage)
+    with pytest.raises(GelSightLUTError, match="corrupt"):
+        GelSightLUT.load(garbage)
 
     good = small_calibration.save(tmp_path / "good.npz")
     truncated = tmp_path / "truncated.npz"
     truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
-    with pytest.raises(CalibrationError, match="corrupt"):
-        GelSightCalibration.load(truncated)
+    with pytest.raises(GelSightLUTError, match="corrupt"):
+        GelSightLUT.load(truncated)
 
     tables = {"table_gx": small_calibration.table_gx, "table_gy": small_calibration.table_gy}
     no_meta = _write_npz(tmp_path / "no_meta.npz", **tables)
-    with pytest.raises(CalibrationError, match="no metadata"):
-        GelSightCalibration.load(no_meta)
+    with pytest.raises(GelSightLUTError, match="no metadata"):
+        GelSightLUT.load(no_meta)
 
     meta = small_calibration.metadata()
     newer = _write_npz(
@@ -153,29 +153,29 @@ def test_corrupt_or_mismatched_files_are_named(
         metadata=np.array(json.dumps({**meta, "version": FORMAT_VERSION + 1})),
         **tables,
     )
-    with pytest.raises(CalibrationError, match="format version 2"):
-        GelSightCalibration.load(newer)
+    with pytest.raises(GelSightLUTError, match="format version 2"):
+        GelSightLUT.load(newer)
 
     resized = _write_npz(
         tmp_path / "resized.npz",
         metadata=np.array(json.dumps({**meta, "image_width_px": 320})),
         **tables,
     )
-    with pytest.raises(CalibrationError, match="table_gx has shape"):
-        GelSightCalibration.load(resized)
+    with pytest.raises(GelSightLUTError, match="table_gx has shape"):
+        GelSightLUT.load(resized)
 
     other = _write_npz(tmp_path / "other.npz", metadata=np.array(json.dumps({"a": 1})), **tables)
-    with pytest.raises(CalibrationError, match="not a touchshape-gelsight-calibration"):
-        GelSightCalibration.load(other)
+    with pytest.raises(GelSightLUTError, match="not a touchshape-gelsight-calibration"):
+        GelSightLUT.load(other)
 
     nan = small_calibration.table_gx.copy()
     nan[3] = np.nan
-    with pytest.raises(CalibrationError, match="non-finite"):
+    with pytest.raises(GelSightLUTError, match="non-finite"):
         dataclasses.replace(small_calibration, table_gx=nan).validate()
 
 
 def test_folder_calibration_equals_datapack_calibration(
-    pack: DataPack, small_calibration: GelSightCalibration, tmp_path: Path
+    pack: DataPack, small_calibration: GelSightLUT, tmp_path: Path
 ) -> None:
     # The same presses as PNG files (RGB on disk) + CSV give the same table: channel order,
     # centre (x = column) and radius columns all go through.
@@ -190,7 +190,7 @@ def test_folder_calibration_equals_datapack_calibration(
 
     presses = load_press_folder(tmp_path, tmp_path / "presses.csv")
     assert [p.name for p in presses] == [f"press_{i}.png" for i in FEW_FRAMES]
-    calibration = calibrate(
+    calibration = build_lut(
         presses, read_image_bgr(reference), ball_radius_mm=2.0, mm_per_px=0.0295
     )
     np.testing.assert_array_equal(calibration.table_gx, small_calibration.table_gx)
@@ -200,13 +200,13 @@ def test_folder_calibration_equals_datapack_calibration(
 def test_folder_input_errors(pack: DataPack, tmp_path: Path) -> None:
     csv_path = tmp_path / "presses.csv"
     csv_path.write_text("image,center_x_px,center_y_px,radius_px\n")
-    with pytest.raises(CalibrationError, match="frame list is empty"):
+    with pytest.raises(GelSightLUTError, match="frame list is empty"):
         load_press_folder(tmp_path, csv_path)
     csv_path.write_text("image,x,y,radius_px\na.png,1,2,3\n")
-    with pytest.raises(CalibrationError, match=r"lacks column\(s\) \['center_x_px'"):
+    with pytest.raises(GelSightLUTError, match=r"lacks column\(s\) \['center_x_px'"):
         load_press_folder(tmp_path, csv_path)
     csv_path.write_text("image,center_x_px,center_y_px,radius_px\na.png,1,two,3\n")
-    with pytest.raises(CalibrationError, match="line 2: not a number"):
+    with pytest.raises(GelSightLUTError, match="line 2: not a number"):
         load_press_folder(tmp_path, csv_path)
     csv_path.write_text("image,center_x_px,center_y_px,radius_px\nmissing.png,1,2,3\n")
     with pytest.raises(FileNotFoundError, match=r"missing\.png"):
@@ -214,25 +214,25 @@ def test_folder_input_errors(pack: DataPack, tmp_path: Path) -> None:
 
     grey = tmp_path / "grey.png"
     Image.fromarray(pack.reference_bgr[:, :, 0]).save(grey)
-    with pytest.raises(CalibrationError, match=r"1 channel\(s\)"):
+    with pytest.raises(GelSightLUTError, match=r"1 channel\(s\)"):
         read_image_bgr(grey)
     press = dataclasses.replace(pack.press(0), radius_px=80.0)
-    with pytest.raises(CalibrationError, match=r"contact radius 80\.0 px"):
-        calibrate([press], pack.reference_bgr, ball_radius_mm=2.0, mm_per_px=0.0295)
+    with pytest.raises(GelSightLUTError, match=r"contact radius 80\.0 px"):
+        build_lut([press], pack.reference_bgr, ball_radius_mm=2.0, mm_per_px=0.0295)
     small = dataclasses.replace(pack.press(0), image_bgr=pack.images_bgr[0, :240, :320])
-    with pytest.raises(CalibrationError, match="320x240 px, the calibration is for 640x480"):
-        calibrate([small], pack.reference_bgr, ball_radius_mm=2.0, mm_per_px=0.0295)
-    with pytest.raises(CalibrationError, match="empty"):
-        calibrate([], pack.reference_bgr, ball_radius_mm=2.0, mm_per_px=0.0295)
+    with pytest.raises(GelSightLUTError, match="320x240 px, the calibration is for 640x480"):
+        build_lut([small], pack.reference_bgr, ball_radius_mm=2.0, mm_per_px=0.0295)
+    with pytest.raises(GelSightLUTError, match="empty"):
+        build_lut([], pack.reference_bgr, ball_radius_mm=2.0, mm_per_px=0.0295)
 
 
 def test_check_image_names_the_problem() -> None:
     check_image(np.zeros((4, 5, 3), np.uint8), "frame", (4, 5))
-    with pytest.raises(CalibrationError, match=r"frame has 1 channel\(s\)"):
+    with pytest.raises(GelSightLUTError, match=r"frame has 1 channel\(s\)"):
         check_image(np.zeros((4, 5), np.uint8), "frame")
-    with pytest.raises(CalibrationError, match=r"has 4 channel\(s\)"):
+    with pytest.raises(GelSightLUTError, match=r"has 4 channel\(s\)"):
         check_image(np.zeros((4, 5, 4), np.uint8), "frame")
-    with pytest.raises(CalibrationError, match="float32: GelSight frames are 8-bit"):
+    with pytest.raises(GelSightLUTError, match="float32: GelSight frames are 8-bit"):
         check_image(np.zeros((4, 5, 3), np.float32), "frame")
-    with pytest.raises(CalibrationError, match="5x4 px, the calibration is for 6x4"):
+    with pytest.raises(GelSightLUTError, match="5x4 px, the calibration is for 6x4"):
         check_image(np.zeros((4, 5, 3), np.uint8), "frame", (4, 6))

@@ -17,7 +17,7 @@ import pytest
 from controller.config import Config, MessagingConfig
 from controller.service import TouchshapeService
 from tests.fakes.perception import make_cylinder_perception
-from tests.test_service_zenoh import Client, free_port
+from tests.fakes.zenoh_client import Client, free_port
 
 pytestmark = pytest.mark.skipif(
     shutil.which("openssl") is None, reason="the openssl command is needed to make certificates"

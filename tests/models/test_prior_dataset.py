@@ -17,11 +17,11 @@ from models.prior.dataset import (
     SketchVoxelDataset,
     ViewRecipe,
     build_dataset,
-    make_box_shape,
     plan_shards,
     split_by_shape,
-    voxelize,
 )
+from models.procedural import make_box_shape
+from models.shapes import voxelize
 
 TINY = ViewRecipe(image_size=64, voxel_resolution=16)
 

@@ -22,8 +22,8 @@ from models.prior.shape_prior import (
 )
 from models.prior.training import save_weights
 from models.prior.virtual_camera import crop_image, grid_crop
+from models.procedural import make_shape
 from models.render import Scene, render
-from models.shapes import make_shape
 
 FULL = CameraIntrinsics.kinect_v2_colour(0.5)
 

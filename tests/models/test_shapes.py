@@ -1,4 +1,4 @@
-"""Tests for models.shapes: procedural category meshes and mesh-file loading."""
+"""Tests for models.procedural and models.shapes: category meshes and mesh-file loading."""
 
 from __future__ import annotations
 
@@ -8,14 +8,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from models.shapes import (
-    CATEGORIES,
-    ShapeError,
-    fits_extent,
-    load_mesh_file,
-    make_shape,
-    object_mesh,
-)
+from models.procedural import CATEGORIES, make_shape, object_mesh
+from models.shapes import ShapeError, fits_extent, load_mesh_file
 
 SEEDS = (0, 1, 2)
 

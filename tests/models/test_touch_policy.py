@@ -10,8 +10,6 @@ from models.touch.policy import (
     ELEVATIONS_DEG,
     YAWS_DEG,
     TouchCandidate,
-    _planes,
-    _quantise,
     above_table_filter,
     all_of,
     approach_direction_voxel,
@@ -26,6 +24,7 @@ from models.touch.policy import (
     touch_candidates,
     window_sums,
 )
+from models.touch.rays import quantise, ray_planes
 
 N = 32
 GRID = VoxelGrid(resolution=N, extent_m=0.16)  # 5 mm voxels: the 14 mm window is 3 x 3 rays
@@ -81,7 +80,7 @@ def test_axis_aligned_rays_probe_the_first_surface_voxel(
         block = voxels[3:7, 5:8, 2:9].copy()
         voxels[:] = 0.0
         voxels[3:7, 5:8, 2:9] = block
-    planes = _planes(voxels, ELEVATIONS_DEG)
+    planes = ray_planes(voxels, ELEVATIONS_DEG)
     assert len(planes) == 4 * 17 + 2
     from_x = _plane(planes, 0.0, 0.0)  # moves along -a_x: lines u = k, columns b = j
     from_above = _plane(planes, 0.0, 90.0)  # moves down: lines u = i, columns b = j
@@ -97,7 +96,7 @@ def test_axis_aligned_rays_probe_the_first_surface_voxel(
                 # Depth along the approach of the probe: hits at the first surface voxel,
                 # misses at the first most probable (quantised) voxel; sample centres at +0.5.
                 surface = np.flatnonzero(values >= 0.5)
-                met = surface[0] if len(surface) else np.argmax(_quantise(values))
+                met = surface[0] if len(surface) else np.argmax(quantise(values))
                 depth = plane.hit_depth[line, j] if len(surface) else plane.miss_depth()[line, j]
                 assert depth == pytest.approx(-(n - 1 - met + 0.5))
 
@@ -171,7 +170,7 @@ def test_quantisation_keeps_the_surface_threshold_exact() -> None:
     values = np.array(
         [0.0, below, 0.5, np.nextafter(np.float32(0.5), np.float32(1)), 1.0], np.float32
     )
-    np.testing.assert_array_equal(_quantise(values), [1, 127, 128, 128, 255])
+    np.testing.assert_array_equal(quantise(values), [1, 127, 128, 128, 255])
 
 
 def test_a_ray_that_misses_gets_the_confidence_of_its_most_probable_voxel() -> None:

@@ -16,7 +16,7 @@ from controller.config import (
     load_config,
 )
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_defaults_are_the_sim_bench() -> None:

@@ -14,7 +14,7 @@ from models.metrics import (
     voxel_iou,
     voxel_surface_mesh,
 )
-from models.prior.dataset import voxelize
+from models.shapes import voxelize
 
 
 def test_voxel_iou() -> None:

@@ -11,10 +11,10 @@ from scipy.spatial.transform import Rotation
 from models.geometry import transform_points
 from models.tactile.evaluation import evaluate_press, fit_sphere_radius, summarise
 from models.tactile.lut import (
-    CalibrationError,
     DataPack,
-    GelSightCalibration,
-    calibrate_datapack,
+    GelSightLUT,
+    GelSightLUTError,
+    build_lut_from_datapack,
     default_datapack_path,
     load_datapack,
 )
@@ -37,9 +37,9 @@ def pack() -> DataPack:
 
 
 @pytest.fixture(scope="module")
-def calibration(pack: DataPack) -> GelSightCalibration:
+def calibration(pack: DataPack) -> GelSightLUT:
     """Calibrated on the even-indexed real presses only: odd ones are held out."""
-    return calibrate_datapack(pack, range(0, 48, 2))
+    return build_lut_from_datapack(pack, range(0, 48, 2))
 
 
 def test_poisson_solver_recovers_a_known_surface() -> None:
@@ -80,9 +80,7 @@ def test_free_border_recovers_an_imprint_running_off_the_edge() -> None:
     assert not imprint_at_border(bump_x, bump_y)
 
 
-def test_held_out_real_presses_meet_the_bar(
-    pack: DataPack, calibration: GelSightCalibration
-) -> None:
+def test_held_out_real_presses_meet_the_bar(pack: DataPack, calibration: GelSightLUT) -> None:
     reconstructor = TactileReconstructor(calibration, pack.reference_bgr)
     results = []
     for index in range(1, 48, 2):
@@ -109,13 +107,11 @@ def test_held_out_real_presses_meet_the_bar(
     assert summary["worst_frame"]["frame"] == "47"
 
 
-def test_plain_table_is_worse_than_position_aware(
-    pack: DataPack, calibration: GelSightCalibration
-) -> None:
+def test_plain_table_is_worse_than_position_aware(pack: DataPack, calibration: GelSightLUT) -> None:
     # The same table with every tile replaced by the pad's mean table (position-blind) loses
     # accuracy on the held-out frames: the tiles carry real information.
     per_tile = calibration.levels**3
-    blind = GelSightCalibration(
+    blind = GelSightLUT(
         **{
             **calibration.__dict__,
             "table_gx": np.tile(calibration.table_gx.reshape(-1, per_tile).mean(0), 48),
@@ -141,20 +137,20 @@ def test_plain_table_is_worse_than_position_aware(
     assert rmse["aware"] < 0.85 * rmse["blind"]  # measured 0.062 vs 0.095 mm
 
 
-def test_reconstructor_rejects_bad_frames(pack: DataPack, calibration: GelSightCalibration) -> None:
-    with pytest.raises(CalibrationError, match="reference image is 320x240 px"):
+def test_reconstructor_rejects_bad_frames(pack: DataPack, calibration: GelSightLUT) -> None:
+    with pytest.raises(GelSightLUTError, match="reference image is 320x240 px"):
         TactileReconstructor(calibration, pack.reference_bgr[:240, :320])
     reconstructor = TactileReconstructor(calibration, pack.reference_bgr)
-    with pytest.raises(CalibrationError, match="image is 320x240 px, the calibration is for"):
+    with pytest.raises(GelSightLUTError, match="image is 320x240 px, the calibration is for"):
         reconstructor.reconstruct(pack.images_bgr[1, :240, :320])
-    with pytest.raises(CalibrationError, match=r"image has 1 channel\(s\)"):
+    with pytest.raises(GelSightLUTError, match=r"image has 1 channel\(s\)"):
         reconstructor.reconstruct(pack.images_bgr[1, :, :, 0])
-    with pytest.raises(CalibrationError, match="float64"):
+    with pytest.raises(GelSightLUTError, match="float64"):
         reconstructor.reconstruct(pack.images_bgr[1].astype(np.float64))
 
 
 def test_no_contact_frame_reconstructs_flat(
-    pack: DataPack, calibration: GelSightCalibration, rng: np.random.Generator
+    pack: DataPack, calibration: GelSightLUT, rng: np.random.Generator
 ) -> None:
     reconstructor = TactileReconstructor(calibration, pack.reference_bgr)
     noisy = pack.reference_bgr + rng.normal(0.0, 1.5, pack.reference_bgr.shape)
@@ -175,7 +171,7 @@ BALL_RADIUS_MM, BALL_DEPTH_MM = 2.0, 1.0
 BALL_CENTRE_PAD_MM = np.array([1.2, -0.7, BALL_RADIUS_MM - BALL_DEPTH_MM])
 
 
-def test_closed_loop_with_the_simulated_sensor(calibration: GelSightCalibration) -> None:
+def test_closed_loop_with_the_simulated_sensor(calibration: GelSightLUT) -> None:
     """Sim image of a known ball -> the real-press calibration -> the ball's true surface.
 
     Stated tolerance, for the calibration ball pressed 1.0 mm: peak within 10 % of the

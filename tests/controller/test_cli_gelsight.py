@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from controller.benchmarks.sim import benchmark_gelsight
+from controller.benchmarks.gelsight import benchmark_gelsight
 from controller.cli.main import main
 from models.tactile.lut import (
     DataPack,
-    GelSightCalibration,
-    calibrate,
+    GelSightLUT,
+    build_lut,
     default_datapack_path,
     load_datapack,
 )
@@ -46,7 +46,7 @@ def listing(folder: Path) -> list[str]:
 
 
 def test_calibrate_writes_a_versioned_file(calib_file: Path) -> None:
-    calibration = GelSightCalibration.load(calib_file)
+    calibration = GelSightLUT.load(calib_file)
     assert calibration.frames == ("0", "2", "4", "6")
     assert calibration.ball_radius_mm == 2.0 and calibration.mm_per_px == 0.0295
     assert listing(calib_file.parent) == ["calib.npz"]
@@ -106,7 +106,7 @@ def small_calib(pack: DataPack, tmp_path: Path) -> Path:
     from models.tactile.lut import BallPress
 
     presses = [BallPress(crop[i], (150.0, 120.0), 40.0, str(i)) for i in range(4)]
-    calibration = calibrate(
+    calibration = build_lut(
         presses, pack.reference_bgr[:240, :320], ball_radius_mm=2.0, mm_per_px=0.0295
     )
     return calibration.save(tmp_path / "small.npz")
@@ -178,7 +178,7 @@ def test_folder_calibration_via_cli(
     argv = ["gelsight", "calibrate", "--images", str(folder), "--csv", str(csv_path)]
     argv += ["--reference", str(reference), "--mm-per-px", "0.0295", "--out", str(out)]
     assert main([*argv, "--ball-radius-mm", "2.0"]) == 0
-    assert GelSightCalibration.load(out).frames == ("0.png", "2.png")
+    assert GelSightLUT.load(out).frames == ("0.png", "2.png")
 
     csv_path.write_text("image,center_x_px,center_y_px,radius_px\n")
     out.unlink()

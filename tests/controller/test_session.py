@@ -14,7 +14,7 @@ import numpy as np
 from controller.config import Config
 from controller.request import ExploreRequest
 from controller.service import TouchshapeService
-from controller.session import TRANSITIONS, State
+from controller.states import TRANSITIONS, State
 from tests.fakes.perception import make_cylinder_perception
 
 WORKING_ORDER = ["capture", "reconstruct", "select", "approach", "touch", "refine"]

@@ -10,7 +10,7 @@ import os
 
 import pytest
 
-from controller.cli.check_devices import check_camera, check_gripper, check_tactile
+from controller.cli.check import check_camera, check_gripper, check_tactile
 from controller.config import Config, load_config
 
 

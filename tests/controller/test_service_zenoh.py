@@ -5,52 +5,19 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import json
-import socket
 import subprocess
 import sys
 from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import Any
 
 import pytest
-import zenoh
 
 from controller.config import Config, MessagingConfig
-from controller.messaging import zenoh_config
 from controller.service import TouchshapeService, decode_shape
 from tests.fakes.perception import make_cylinder_perception
+from tests.fakes.zenoh_client import Client, free_port
 
 WORKING = ["capture", "reconstruct", "select", "approach", "touch", "refine"]
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-class Client:
-    """A remote user's Zenoh session, collecting what the service publishes."""
-
-    def __init__(self, messaging: MessagingConfig) -> None:
-        self.session = zenoh.open(zenoh_config(messaging))
-        self.messages: dict[str, list[dict[str, Any]]] = {}
-        self._subscriber = self.session.declare_subscriber("touchshape/sim/*", self._on_sample)
-
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        topic = str(sample.key_expr).rsplit("/", 1)[-1]
-        self.messages.setdefault(topic, []).append(json.loads(sample.payload.to_string()))
-
-    def query(self, name: str, body: str | bytes = b"") -> list[dict[str, Any]]:
-        replies = self.session.get(f"touchshape/sim/{name}", payload=body, timeout=3.0)
-        return [json.loads(reply.ok.payload.to_string()) for reply in replies if reply.ok]
-
-    async def aquery(self, name: str, body: str | bytes = b"") -> list[dict[str, Any]]:
-        return await asyncio.to_thread(self.query, name, body)
-
-    def close(self) -> None:
-        self._subscriber.undeclare()
-        self.session.close()
 
 
 async def wait_for(predicate, timeout_s: float = 60.0) -> None:

@@ -15,7 +15,7 @@ import fakes.pylibfreenect2 as fake_freenect2
 import numpy as np
 import pytest
 
-from controller.cli.check_devices import check_camera, check_gripper, check_tactile
+from controller.cli.check import check_camera, check_gripper, check_tactile
 from controller.cli.main import main
 from drivers.config import ArmConfig, CameraConfig, GripperConfig, SensorConfig, SimConfig
 from drivers.factory import make_devices

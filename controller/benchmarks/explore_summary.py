@@ -1,0 +1,142 @@
+"""What the exploration benchmark's JSON says: per-method summaries over objects, and the
+paper's figure (docs/explore.md, JSON)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from controller.perception.learned import REPEAT_RADIUS_M
+from models.prior.evaluation import _mean as finite_mean
+
+METRICS = ("chamfer_mm", "fscore_5mm", "fscore_2mm", "iou")
+"""The shape metrics of a curve, one value after each number of touches."""
+
+
+def _mean_curve(curves: Sequence[Sequence[float | None]]) -> list[float | None]:
+    """Pointwise mean over the finite values (None where there are none)."""
+    return [finite_mean(values) for values in zip(*curves, strict=True)]
+
+
+def mean_runs(runs: list[dict]) -> dict:
+    """The mean curves of several seeded runs, with the runs themselves."""
+    mean: dict[str, Any] = {key: _mean_curve([r[key] for r in runs]) for key in METRICS}
+    made = min(r["touches_made"] for r in runs)  # timings: over the touches every run made
+    for key in ("select_s", "refine_s"):
+        mean[key] = _mean_curve([r[key][:made] for r in runs])
+    mean["touches_made"] = float(np.mean([r["touches_made"] for r in runs]))
+    mean["runs"] = runs
+    return mean
+
+
+def change_pct(before: float | None, after: float | None) -> float | None:
+    """The change from ``before`` to ``after``, % of ``before`` (None without a positive
+    ``before`` and an ``after``)."""
+    if before is None or after is None or not before > 0:
+        return None
+    return 100.0 * (after - before) / before
+
+
+def _touch_statistics(results: Sequence[dict]) -> dict[str, Any]:
+    """How the touches of some results ended: a GelSight imprint (contact points), a force stop
+    without one (the housing or another rigid part met the object first, or a flat face filled
+    the pad: only the sweep is known free), or a miss; how much the refinements did: the
+    median ratio of the touch loss after / before refining and the mean voxels flipped; and how
+    many touches repeated an earlier one."""
+    runs = [run for r in results for run in r.get("runs", [r])]
+    contact = [c for run in runs for c in run["contact"]]
+    imprint = [i for run in runs for i in run["imprint"]]
+    ratios = [after / before for run in runs for before, after in run["touch_loss"] if before > 0]
+    flipped = [f for run in runs for f in run["flipped"]]
+    repeated = sum(_repeats(run["target"]) for run in runs)
+    return {
+        "imprint": int(sum(imprint)),
+        "force_only": int(sum(c and not i for c, i in zip(contact, imprint, strict=True))),
+        "miss": int(sum(not c for c in contact)),
+        "touch_loss_after_over_before_median": float(np.median(ratios)) if ratios else None,
+        "flipped_voxels_mean": float(np.mean(flipped)) if flipped else None,
+        "repeated_targets": repeated,
+    }
+
+
+def _repeats(targets: Sequence[Sequence[float]]) -> int:
+    """Touches aimed within ``REPEAT_RADIUS_M`` of an earlier touch's target, same direction."""
+    count = 0
+    for n, touch in enumerate(targets):
+        point, direction = np.asarray(touch[:3]), np.asarray(touch[3:])
+        count += any(
+            np.linalg.norm(point - np.asarray(earlier[:3])) < REPEAT_RADIUS_M
+            and float(direction @ np.asarray(earlier[3:])) > 0.99
+            for earlier in targets[:n]
+        )
+    return count
+
+
+def summarise(objects: Sequence[dict], methods: Sequence[str], touches: int) -> dict:
+    """Mean curves per method over objects, the mean % change of Chamfer after ``touches``
+    touches versus none, median timings, and the ``bar``: does active-prior lower the Chamfer
+    distance by 30 %, beat random-prior from 3 touches on and active-direct at the end (each
+    where those methods ran)."""
+    summary: dict[str, Any] = {"objects": len(objects), "touches": touches, "methods": {}}
+    for method in methods:
+        results = [obj["methods"][method] for obj in objects]
+        entry: dict[str, Any] = {key: _mean_curve([r[key] for r in results]) for key in METRICS}
+        entry["chamfer_change_pct"] = finite_mean(
+            [change_pct(r["chamfer_mm"][0], r["chamfer_mm"][-1]) for r in results]
+        )
+        entry["empty_predictions_at_end"] = sum(r["chamfer_mm"][-1] is None for r in results)
+        for key in ("select_s", "refine_s"):
+            values = [v for r in results for v in r[key] if v is not None]
+            entry[f"{key}_median"] = float(np.median(values)) if values else None
+        entry["touches"] = _touch_statistics(results)
+        summary["methods"][method] = entry
+    curves = {m: summary["methods"][m]["chamfer_mm"] for m in methods}
+    bar: dict[str, Any] = {}
+    if "active-prior" in curves:
+        change = summary["methods"]["active-prior"]["chamfer_change_pct"]
+        bar["active_prior_chamfer_change_pct"] = change
+        bar["active_prior_lowers_chamfer_30pct"] = change is not None and change <= -30.0
+        active = curves["active-prior"]
+
+        def below(other: list[float | None], counts: Sequence[int]) -> bool:
+            return all(
+                active[n] is not None and other[n] is not None and active[n] < other[n]
+                for n in counts
+            )
+
+        if "random-prior" in curves:
+            bar["active_beats_random_from_3"] = below(
+                curves["random-prior"], range(min(3, touches), touches + 1)
+            )
+        if "active-direct" in curves:
+            bar["active_beats_direct_at_end"] = below(curves["active-direct"], [touches])
+    summary["bar"] = bar
+    return summary
+
+
+def plot_curves(result: dict, path: Path) -> None:
+    """The paper's figure: mean Chamfer distance versus number of touches, one curve per
+    method (PNG, matplotlib Agg)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(figsize=(6.0, 4.0), dpi=120)
+    for method, entry in result["summary"]["methods"].items():
+        curve = [np.nan if v is None else v for v in entry["chamfer_mm"]]
+        axes.plot(range(len(curve)), curve, marker="o", markersize=3, label=method)
+    axes.set_xlabel("number of touches")
+    axes.set_ylabel("mean Chamfer distance (mm)")
+    axes.set_title(
+        f"{result['summary']['objects']} objects, prior {result['prior']} ({result['input']})"
+    )
+    axes.grid(alpha=0.3)
+    axes.legend()
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path)
+    plt.close(figure)

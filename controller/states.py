@@ -1,0 +1,54 @@
+"""The states of an exploration session, the legal transitions between them and each working
+state's time limit: the finite-state machine that ``controller.session`` runs."""
+
+from __future__ import annotations
+
+from enum import StrEnum
+
+
+class State(StrEnum):
+    IDLE = "idle"
+    CAPTURE = "capture"
+    RECONSTRUCT = "reconstruct"
+    SELECT = "select"
+    APPROACH = "approach"
+    TOUCH = "touch"
+    REFINE = "refine"
+    DONE = "done"
+    FAULT = "fault"
+    ABORTED = "aborted"
+
+
+WORKING_STATES = (
+    State.CAPTURE,
+    State.RECONSTRUCT,
+    State.SELECT,
+    State.APPROACH,
+    State.TOUCH,
+    State.REFINE,
+)
+TRANSITIONS: dict[State, frozenset[State]] = {
+    State.IDLE: frozenset({State.CAPTURE}),
+    State.CAPTURE: frozenset({State.RECONSTRUCT}),
+    State.RECONSTRUCT: frozenset({State.SELECT}),
+    State.SELECT: frozenset({State.APPROACH, State.DONE}),
+    # Back to select when the planner refuses the motion to a target (it is then excluded).
+    State.APPROACH: frozenset({State.TOUCH, State.SELECT}),
+    State.TOUCH: frozenset({State.REFINE}),
+    State.REFINE: frozenset({State.SELECT, State.DONE}),
+    State.DONE: frozenset({State.IDLE}),
+    State.FAULT: frozenset({State.IDLE}),
+    State.ABORTED: frozenset({State.IDLE}),
+}
+for _working in WORKING_STATES:
+    TRANSITIONS[_working] |= {State.FAULT, State.ABORTED}
+
+STEP_TIMEOUT_S = {
+    State.CAPTURE: 30.0,
+    State.RECONSTRUCT: 60.0,
+    State.SELECT: 60.0,
+    State.APPROACH: 180.0,
+    State.TOUCH: 180.0,
+    State.REFINE: 60.0,
+}
+"""Wall-clock limit of each working state; past it the session faults."""
