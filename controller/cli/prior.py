@@ -18,7 +18,8 @@ if TYPE_CHECKING:
 
 def add_commands(groups: argparse._SubParsersAction) -> None:
     """Add the `data build`, `train sketch|shape|calibrate` and `eval prior` commands."""
-    from models.procedural import ALL_CATEGORIES, CATEGORIES
+    from models.prior.dataset import SHAPE_GROUPS
+    from models.procedural import CATEGORIES
 
     data = groups.add_parser("data", help="training data for the shape priors")
     data_commands = data.add_subparsers(dest="command", required=True)
@@ -41,9 +42,17 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
         "--categories",
         nargs="+",
         default=list(CATEGORIES),
-        choices=ALL_CATEGORIES,
+        choices=SHAPE_GROUPS,
         metavar="NAME",
-        help="procedural categories (default: the 14; 'box' = the box family)",
+        help="procedural categories and shape families (default: the 14 categories; 'box' = "
+        f"the box family; families: {', '.join(SHAPE_GROUPS[len(CATEGORIES) + 1 :])})",
+    )
+    build.add_argument(
+        "--frame",
+        choices=("object", "fixed"),
+        default="object",
+        help="grid of each view: fitted to the object (default) or the fixed cube on the "
+        "object point",
     )
     build.add_argument("--shapes-per-category", type=int, default=40)
     build.add_argument("--views", type=int, default=6, help="views per shape")
@@ -146,9 +155,9 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
         "--categories",
         nargs="+",
         default=list(CATEGORIES),
-        choices=ALL_CATEGORIES,
+        choices=SHAPE_GROUPS,
         metavar="NAME",
-        help="held-out procedural categories (default: the 14)",
+        help="held-out procedural categories or shape families (default: the 14 categories)",
     )
     prior.add_argument("--shapes-per-category", type=int, default=5)
     prior.add_argument("--input", choices=("rgb", "rgbd"), default="rgb")
@@ -176,6 +185,7 @@ def data_build(args: argparse.Namespace) -> int:
         camera_tilt_deg=camera.tilt_deg,
         camera_distance_m=camera.horizontal_distance_m,
         full_colour_scale=camera.colour_scale,
+        frame=args.frame,
     )
     spec = BuildSpec(
         out_dir=str(args.out),

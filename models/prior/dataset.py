@@ -28,23 +28,37 @@ import multiprocessing
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
 import trimesh
 
 from models.camera import CameraIntrinsics, look_at_pose
+from models.families import FAMILIES, SIZE_RANGE_M, make_family_shape
 from models.files import write_atomically, write_json_atomically
 from models.geometry import VoxelGrid, axes_facing_camera, make_transform, rotation_about_axis
+from models.prior.frame import FrameError, fit_object_grid, search_grid
 from models.prior.virtual_camera import GridCrop, grid_crop
 from models.procedural import ALL_CATEGORIES, CATEGORIES, procedural_shape
-from models.render import Lighting, Scene, SceneObject, apply_kinect_depth_noise, make_table, render
+from models.render import (
+    Lighting,
+    RenderOutput,
+    Scene,
+    SceneObject,
+    apply_kinect_depth_noise,
+    make_table,
+    render,
+)
 from models.shapes import load_mesh_file, voxelize
 
 EVAL_SEED_START = 1_000_000
 """Shape seeds >= this are held out for evaluation and never used for training data."""
 
 BACKGROUNDS: tuple[str, ...] = ("white", "gradient", "texture")
+
+SHAPE_GROUPS: tuple[str, ...] = (*ALL_CATEGORIES, *FAMILIES)
+"""Everything a dataset can draw shapes from; a group's index here seeds its shapes."""
 
 # ShapeNetCore synset ids of the paper's 14 categories.
 SHAPENET_SYNSETS: dict[str, str] = {
@@ -82,6 +96,13 @@ class ViewRecipe:
     distance_jitter_m: float = 0.06
     shapenet_size_m: tuple[float, float] = (0.10, 0.20)
     """Largest extent of a ShapeNet model after scaling (the files are normalised, unitless)."""
+    frame: Literal["fixed", "object"] = "object"
+    """"fixed": the grid_extent_m cube on the object point (the paper's registration);
+    "object": the grid fitted to the object's silhouette (:mod:`models.prior.frame`)."""
+    frame_jitter: float = 0.05
+    """Relative jitter of the fitted frame's edge and centre, for the frame's own errors."""
+    category_scale: tuple[float, float] = (0.6, 1.4)
+    """The 14 categories are scaled by a factor drawn in this range (within SIZE_RANGE_M)."""
 
 
 @dataclass(frozen=True)
@@ -104,6 +125,23 @@ def shape_rngs(category_index: int, shape_seed: int) -> tuple[np.random.Generato
         np.random.default_rng((category_index, shape_seed)),
         np.random.default_rng((category_index, shape_seed, 1)),
     )
+
+
+def generated_shape(
+    group: str, rng: np.random.Generator, recipe: ViewRecipe | None = None
+) -> trimesh.Trimesh:
+    """A shape of one of :data:`SHAPE_GROUPS` (table frame, metres). With a ``recipe``, the
+    14 categories are scaled by a factor in ``recipe.category_scale`` (drawn after the shape, so
+    the shape itself is that of the seed), kept within :data:`models.families.SIZE_RANGE_M`."""
+    if group in FAMILIES:
+        return make_family_shape(group, rng)
+    mesh = procedural_shape(group, rng)
+    if recipe is not None and group in CATEGORIES:
+        largest = float(np.max(mesh.extents))
+        low = max(recipe.category_scale[0], SIZE_RANGE_M[0] / largest)
+        high = min(recipe.category_scale[1], SIZE_RANGE_M[1] / largest)
+        mesh.apply_scale(float(np.exp(rng.uniform(np.log(low), np.log(high)))))
+    return mesh
 
 
 def shapenet_models(root: Path) -> dict[str, list[Path]]:
@@ -134,9 +172,10 @@ def jittered_camera_pose(recipe: ViewRecipe, rng: np.random.Generator) -> np.nda
 
 
 def registered_grid(recipe: ViewRecipe, pose_world_camera: np.ndarray) -> VoxelGrid:
-    """The controller's grid for this camera: on the object point, axes facing the camera."""
-    axes = axes_facing_camera(pose_world_camera[:3, 3])
-    return VoxelGrid(recipe.voxel_resolution, recipe.grid_extent_m, (0.0, 0.0, 0.0), axes)
+    """The paper's fixed grid for this camera: on the object point, axes facing the camera."""
+    return VoxelGrid(
+        recipe.voxel_resolution, recipe.grid_extent_m, (0.0, 0.0, 0.0), _axes(pose_world_camera)
+    )
 
 
 def view_crop(recipe: ViewRecipe, pose_world_camera: np.ndarray, grid: VoxelGrid) -> GridCrop:
@@ -185,26 +224,83 @@ def render_view(
         table=table,
     )
 
-    grid = registered_grid(recipe, pose_world_camera)
-    crop = view_crop(recipe, pose_world_camera, grid)
-    out = render(
-        scene, crop.intrinsics, pose_world_camera, lighting=lighting, background=background, rng=rng
-    )
+    def render_crop(grid: VoxelGrid) -> tuple[GridCrop, RenderOutput]:
+        crop = view_crop(recipe, pose_world_camera, grid)
+        out = render(
+            scene,
+            crop.intrinsics,
+            pose_world_camera,
+            lighting=lighting,
+            background=background,
+            rng=rng,
+        )
+        return crop, out
+
+    view: dict[str, np.ndarray] = {}
+    if recipe.frame == "object":
+        searched, search_out = render_crop(
+            search_grid(recipe.voxel_resolution, _axes(pose_world_camera))
+        )
+        view |= {f"search_{k}": v for k, v in _sketches(searched, search_out).items()}
+        grid = object_grid(recipe, pose_world_camera, searched, search_out.silhouette, rng)
+    else:
+        grid = registered_grid(recipe, pose_world_camera)
+    crop, out = render_crop(grid)
     sensor = apply_kinect_depth_noise(
         out.depth_m, out.normals_camera, rng, intrinsics=crop.intrinsics
     )
+    return (
+        view
+        | _sketches(crop, out)
+        | {
+            "sensor_nearness": crop.nearness(sensor).astype(np.float16),
+            "voxels": np.packbits(voxelize(mesh_world, grid)),
+            "grid_extent_m": np.float32(grid.extent_m),
+            "grid_origin_world": np.asarray(grid.origin_world, dtype=np.float32),
+            "pose_world_camera": pose_world_camera.astype(np.float32),
+            "yaw_rad": np.float32(yaw),
+            "background": np.int8(BACKGROUNDS.index(background)),
+        }
+    )
+
+
+def _sketches(crop: GridCrop, out: RenderOutput) -> dict[str, np.ndarray]:
+    """The network's input and the sketch net's targets of one rendered crop, as stored."""
     silhouette = out.silhouette
     return {
         "rgb": out.colour_rgb,
         "nearness": np.where(silhouette, crop.nearness(out.depth_m), 0).astype(np.float16),
-        "sensor_nearness": crop.nearness(sensor).astype(np.float16),
         "normals": np.round(out.normals_camera * 127 * silhouette[..., None]).astype(np.int8),
         "silhouette": np.packbits(silhouette),
-        "voxels": np.packbits(voxelize(mesh_world, grid)),
-        "pose_world_camera": pose_world_camera.astype(np.float32),
-        "yaw_rad": np.float32(yaw),
-        "background": np.int8(BACKGROUNDS.index(background)),
     }
+
+
+def _axes(pose_world_camera: np.ndarray) -> tuple[tuple[float, float, float], ...]:
+    return axes_facing_camera(pose_world_camera[:3, 3])
+
+
+def object_grid(
+    recipe: ViewRecipe,
+    pose_world_camera: np.ndarray,
+    searched: GridCrop,
+    silhouette: np.ndarray,
+    rng: np.random.Generator,
+) -> VoxelGrid:
+    """The object-fitted grid of a view, jittered by ``recipe.frame_jitter`` so the networks
+    learn the frame's errors; the search grid when no object is seen."""
+    axes = _axes(pose_world_camera)
+    try:
+        fitted = fit_object_grid(
+            silhouette, searched.intrinsics, pose_world_camera, axes, recipe.voxel_resolution
+        )
+    except FrameError:
+        return search_grid(recipe.voxel_resolution, axes)
+    jitter = recipe.frame_jitter
+    extent = fitted.extent_m * (1.0 + rng.uniform(-jitter, jitter))
+    shift = rng.normal(0.0, 0.5 * jitter * fitted.extent_m, 2)
+    axes_array = np.asarray(axes)
+    origin = np.asarray(fitted.origin_world) + shift[0] * axes_array[0] + shift[1] * axes_array[1]
+    return VoxelGrid(recipe.voxel_resolution, extent, (origin[0], origin[1], 0.0), axes)
 
 
 # --- shards ---------------------------------------------------------------------------------------
@@ -235,8 +331,8 @@ def plan_shards(spec: BuildSpec) -> list[ShardTask]:
     tasks: list[ShardTask] = []
     if spec.source == "procedural":
         for category in spec.categories:
-            if category not in ALL_CATEGORIES:
-                raise ValueError(f"unknown category {category!r}; expected {ALL_CATEGORIES}")
+            if category not in SHAPE_GROUPS:
+                raise ValueError(f"unknown category {category!r}; expected {SHAPE_GROUPS}")
             seeds = [spec.seed + n for n in range(spec.shapes_per_category)]
             for start in range(0, len(seeds), spec.shapes_per_shard):
                 chunk = tuple(seeds[start : start + spec.shapes_per_shard])
@@ -255,7 +351,7 @@ def plan_shards(spec: BuildSpec) -> list[ShardTask]:
 
 def build_shard(spec: BuildSpec, task: ShardTask) -> Path:
     """Render one shard and write it atomically."""
-    category_index = ALL_CATEGORIES.index(task.category) if task.category in ALL_CATEGORIES else -1
+    category_index = SHAPE_GROUPS.index(task.category) if task.category in SHAPE_GROUPS else -1
     rng_key = category_index if category_index >= 0 else sum(task.category.encode())
     views: list[dict[str, np.ndarray]] = []
     names: list[str] = []
@@ -266,7 +362,7 @@ def build_shard(spec: BuildSpec, task: ShardTask) -> Path:
             mesh = load_mesh_file(task.mesh_paths[n], up_axis="y", fit_max_extent_m=size)
             names.append(Path(task.mesh_paths[n]).parents[1].name)
         else:
-            mesh = procedural_shape(task.category, shape_rng)
+            mesh = generated_shape(task.category, shape_rng, spec.recipe)
             names.append(f"{task.category}_{shape_seed}")
         views.extend(render_view(mesh, spec.recipe, view_rng) for _ in range(spec.views))
     arrays = {key: np.stack([view[key] for view in views]) for key in views[0]}
@@ -308,7 +404,7 @@ def build_dataset(spec: BuildSpec, *, workers: int = 2, progress: bool = True) -
         "format": "touchshape-prior-data/1",
         "recipe": recipe,
         "seeding": "shape n of category c: default_rng((c, seed + n)); its views: "
-        "default_rng((c, seed + n, 1)); c = index in ALL_CATEGORIES",
+        "default_rng((c, seed + n, 1)); c = index in SHAPE_GROUPS",
         "eval_seed_start": EVAL_SEED_START,
         "categories": list(dict.fromkeys(task.category for task in tasks)),
         "shards": [
@@ -350,61 +446,81 @@ class SketchVoxelDataset(torch.utils.data.Dataset):
 
     Items are dicts of tensors: ``rgb`` uint8 (3, S, S); ``nearness``, ``sensor_nearness``,
     ``silhouette`` float (1, S, S); ``normals`` float (3, S, S); ``voxels`` float (N, N, N);
-    ``category`` int (index into :attr:`categories`).
+    ``category`` int (index into :attr:`categories`). With ``search_crops`` (for the sketch
+    net), the views' search crops follow as further items: the crops in which the object-fitted
+    frame looks for the object, with sketches but no voxels (zeros) and no sensor depth.
     """
 
-    def __init__(self, data_dir: str | Path, *, shards: Sequence[str] | None = None) -> None:
+    _VIEW_KEYS = ("rgb", "nearness", "sensor_nearness", "normals", "silhouette", "voxels")
+    _SEARCH_KEYS = ("search_rgb", "search_nearness", "search_normals", "search_silhouette")
+
+    def __init__(
+        self,
+        data_dir: str | Path,
+        *,
+        shards: Sequence[str] | None = None,
+        search_crops: bool = False,
+    ) -> None:
         data_dir = Path(data_dir)
         manifest = json.loads(manifest_path(data_dir).read_text())
         recipe = manifest["recipe"]["recipe"]
         self.image_size: int = recipe["image_size"]
         self.voxel_resolution: int = recipe["voxel_resolution"]
         self.categories: list[str] = manifest["categories"]
+        if search_crops and recipe.get("frame", "fixed") != "object":
+            raise ValueError(f"{data_dir} has no search crops (its views use the fixed frame)")
+        keys = self._VIEW_KEYS + (self._SEARCH_KEYS if search_crops else ())
         files = [s["file"] for s in manifest["shards"]] if shards is None else list(shards)
         parts: dict[str, list[np.ndarray]] = {}
         for name in files:
             with np.load(data_dir / name) as shard:
                 count = len(shard["rgb"])
-                for key in (
-                    "rgb",
-                    "nearness",
-                    "sensor_nearness",
-                    "normals",
-                    "silhouette",
-                    "voxels",
-                ):
+                for key in keys:
                     parts.setdefault(key, []).append(shard[key])
                 category = self.categories.index(str(shard["category"]))
                 parts.setdefault("category", []).append(np.full(count, category))
                 names = shard["names"][shard["shape_index"]]
                 parts.setdefault("name", []).append(names)
         self.arrays = {key: np.concatenate(value) for key, value in parts.items()}
+        self.views = len(self.arrays["rgb"])
+        self.search_crops = search_crops
 
     def __len__(self) -> int:
-        return len(self.arrays["rgb"])
+        return self.views * (2 if self.search_crops else 1)
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         a = self.arrays
         size, n = self.image_size, self.voxel_resolution
-        silhouette = np.unpackbits(a["silhouette"][index])[: size * size].reshape(1, size, size)
-        voxels = np.unpackbits(a["voxels"][index])[: n**3].reshape(n, n, n)
+        search = index >= self.views
+        view = index - self.views if search else index
+        prefix = "search_" if search else ""
+        silhouette = np.unpackbits(a[prefix + "silhouette"][view])[: size * size]
+        nearness = torch.from_numpy(a[prefix + "nearness"][view].astype(np.float32))[None]
+        if search:
+            sensor_nearness = torch.zeros_like(nearness)
+            voxels = torch.zeros((n, n, n))
+        else:
+            sensor_nearness = torch.from_numpy(a["sensor_nearness"][view].astype(np.float32))[None]
+            voxels = torch.from_numpy(
+                np.unpackbits(a["voxels"][view])[: n**3].reshape(n, n, n).astype(np.float32)
+            )
         return {
-            "rgb": torch.from_numpy(a["rgb"][index]).permute(2, 0, 1).contiguous(),
-            "nearness": torch.from_numpy(a["nearness"][index].astype(np.float32))[None],
-            "sensor_nearness": torch.from_numpy(a["sensor_nearness"][index].astype(np.float32))[
-                None
-            ],
-            "normals": torch.from_numpy(a["normals"][index].astype(np.float32) / 127.0).permute(
-                2, 0, 1
-            ),
-            "silhouette": torch.from_numpy(silhouette.astype(np.float32)),
-            "voxels": torch.from_numpy(voxels.astype(np.float32)),
-            "category": torch.tensor(int(a["category"][index])),
+            "rgb": torch.from_numpy(a[prefix + "rgb"][view]).permute(2, 0, 1).contiguous(),
+            "nearness": nearness,
+            "sensor_nearness": sensor_nearness,
+            "normals": torch.from_numpy(
+                a[prefix + "normals"][view].astype(np.float32) / 127.0
+            ).permute(2, 0, 1),
+            "silhouette": torch.from_numpy(silhouette.reshape(1, size, size).astype(np.float32)),
+            "voxels": voxels,
+            "category": torch.tensor(int(a["category"][view])),
         }
 
     def shape_names(self) -> np.ndarray:
-        """Name of the shape of each view (views of one shape share it)."""
-        return self.arrays["name"]
+        """Name of the shape of each item (views of one shape, and their search crops, share
+        it)."""
+        names = self.arrays["name"]
+        return np.concatenate([names, names]) if self.search_crops else names
 
 
 def split_by_shape(

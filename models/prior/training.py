@@ -199,6 +199,11 @@ class _Distributed:
             dist.destroy_process_group()
 
 
+def _has_search_crops(data_dir: str | Path) -> bool:
+    manifest = json.loads((Path(data_dir) / "manifest.json").read_text())
+    return manifest["recipe"]["recipe"].get("frame", "fixed") == "object"
+
+
 def train(config: TrainConfig, *, progress: bool = True) -> dict:
     """Run (or resume) a training run; returns the last validation metrics."""
     from tqdm import tqdm
@@ -209,7 +214,10 @@ def train(config: TrainConfig, *, progress: bool = True) -> dict:
     out_dir = Path(config.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(config.seed)
-    dataset = SketchVoxelDataset(config.data_dir)
+    # The sketch net also learns the search crops, where the object-fitted frame looks for the
+    # object (when the data has them); the shape net needs voxels, which only the fitted crops have.
+    search = config.stage == "sketch" and _has_search_crops(config.data_dir)
+    dataset = SketchVoxelDataset(config.data_dir, search_crops=search)
     train_idx, val_idx = split_by_shape(dataset, config.val_fraction, config.seed)
     val_idx = val_idx[: config.max_val_samples]
 

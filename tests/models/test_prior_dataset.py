@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -148,3 +149,27 @@ def test_shapenet_style_folder(tmp_path: Path) -> None:
     assert len(layers) > len(columns) and layers[0] == 0
     recipe = json.loads((tmp_path / "out" / "manifest.json").read_text())["recipe"]
     assert recipe["source"] == str(source)
+
+
+def test_object_frame_views_fill_their_grid_and_carry_search_crops(tmp_path: Path) -> None:
+    spec = _spec(tmp_path, categories=("fruit", "can"), shapes_per_category=2)
+    manifest = build_dataset(spec, workers=1, progress=False)
+    shard = np.load(tmp_path / manifest["shards"][0]["file"])
+    # The fitted grid follows the object's size; the fixed frame's is always 0.26 m.
+    assert len(set(np.round(shard["grid_extent_m"], 4))) > 1
+    dataset = SketchVoxelDataset(tmp_path, search_crops=True)
+    assert len(dataset) == 2 * dataset.views
+    fitted, searched = dataset[0], dataset[dataset.views]
+    # The object fills more of the fitted crop than of the search crop, which has no voxels.
+    assert float(fitted["silhouette"].mean()) > float(searched["silhouette"].mean()) > 0
+    assert float(searched["voxels"].sum()) == 0 and float(fitted["voxels"].sum()) > 0
+    names = dataset.shape_names()
+    assert len(names) == len(dataset) and names[0] == names[dataset.views]
+
+
+def test_fixed_frame_data_has_no_search_crops(tmp_path: Path) -> None:
+    fixed = dataclasses.replace(TINY, frame="fixed")
+    build_dataset(_spec(tmp_path, categories=("can",), recipe=fixed), workers=1, progress=False)
+    assert np.allclose(np.load(tmp_path / "shard_00000.npz")["grid_extent_m"], fixed.grid_extent_m)
+    with pytest.raises(ValueError, match="no search crops"):
+        SketchVoxelDataset(tmp_path, search_crops=True)

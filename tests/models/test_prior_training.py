@@ -76,7 +76,7 @@ def test_shape_loss_decreases(tiny_data: Path) -> None:
     model = ShapeNet(TINY_PRESET)
     optimizer = paper_optimizer("shape", model, None)
     losses = []
-    for _ in range(15):
+    for _ in range(25):
         loss = shape_loss(model(ground_truth_shape_input(batch)), batch["voxels"])
         optimizer.zero_grad()
         loss.backward()
