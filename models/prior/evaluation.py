@@ -103,9 +103,13 @@ def evaluate_prior(
             prediction = prior.predict(
                 frame.colour_rgb, camera.intrinsics, camera.pose_world_camera, grid, depth_m=depth
             )
-            truth = voxelize(mesh_world, grid)
+            # An object-frame prior decodes in the grid it fitted to the object.
+            truth = voxelize(mesh_world, prediction.grid)
             surface = mesh_metrics(
-                prediction.probabilities, grid, mesh_world, seed=int(rng.integers(1 << 31))
+                prediction.probabilities,
+                prediction.grid,
+                mesh_world,
+                seed=int(rng.integers(1 << 31)),
             )
             per_view.append(
                 {

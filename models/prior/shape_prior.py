@@ -4,23 +4,28 @@ A prior is a 2.5D sketch net and a shape net of one preset, loaded by name from 
 holding ``priors.json`` (the committed ``models/prior/weights/`` by default). The shape net's
 decoder is the learned prior that touch refinement optimises through :meth:`ShapePrior.decode`.
 
-Frames: the prediction is indexed [i, j, k] in the :class:`models.geometry.VoxelGrid` registered
-with the camera (``VoxelGridConfig.grid(camera_position)``: bottom centre on the object point, a_x
-horizontal toward the camera, a_z up), so ``x_w = R_v (x_v - o_v) + o_w`` places it in the world.
+Frames: the prediction is indexed [i, j, k] in a :class:`models.geometry.VoxelGrid` whose axes
+face the camera (a_x horizontal toward the camera, a_z up): the grid registered with the camera
+(``VoxelGridConfig.grid(camera_position)``, bottom centre on the object point) for a prior of the
+fixed frame, or the grid fitted to the object (:mod:`models.prior.frame`) for a prior of the
+object frame; ``PriorPrediction.grid`` says which, and ``x_w = R_v (x_v - o_v) + o_w`` places it
+in the world.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Literal, Protocol
 
 import numpy as np
 import torch
 
 from models.camera import CameraIntrinsics
 from models.geometry import VoxelGrid
+from models.prior.frame import FrameError, depth_silhouette, fit_object_grid, search_grid
 from models.prior.networks import (
     NetworkPreset,
     ShapeNet,
@@ -30,6 +35,8 @@ from models.prior.networks import (
     shape_input,
 )
 from models.prior.virtual_camera import GridCrop, crop_image, grid_crop
+
+log = logging.getLogger(__name__)
 
 DEFAULT_WEIGHTS_DIR = Path(__file__).parent / "weights"
 """The weights shipped with the package (``priors.json`` lists them)."""
@@ -58,6 +65,9 @@ class PriorSpec:
     shape_weights: str
     grid_extent_m: float
     description: str = ""
+    frame: Literal["fixed", "object"] = "fixed"
+    """"fixed": the prior decodes into the registered grid of ``grid_extent_m``; "object": into
+    the grid fitted to the object (:mod:`models.prior.frame`), found in a search crop first."""
 
 
 def available_priors(weights_dir: str | Path | None = None) -> dict[str, list[PriorSpec]]:
@@ -100,11 +110,13 @@ class ShapePrior:
         *,
         name: str = "untrained",
         grid_extent_m: float = 0.26,
+        frame: Literal["fixed", "object"] = "fixed",
         device: str | torch.device = "cpu",
     ) -> None:
         self.name = name
         self.preset: NetworkPreset = shape_net.preset
         self.grid_extent_m = grid_extent_m
+        self.frame = frame
         self.device = torch.device(device)
         self.sketch_net = sketch_net.to(self.device).eval()
         self.shape_net = shape_net.to(self.device).eval()
@@ -143,7 +155,14 @@ class ShapePrior:
         sketch, shape = SketchNet(network_preset), ShapeNet(network_preset)
         load_weights(sketch, folder / spec.sketch_weights)
         load_weights(shape, folder / spec.shape_weights)
-        return cls(sketch, shape, name=name, grid_extent_m=spec.grid_extent_m, device=device)
+        return cls(
+            sketch,
+            shape,
+            name=name,
+            grid_extent_m=spec.grid_extent_m,
+            frame=spec.frame,
+            device=device,
+        )
 
     @classmethod
     def from_config(cls, models: ModelsSettings) -> ShapePrior:
@@ -164,13 +183,14 @@ class ShapePrior:
         return cls(SketchNet(network_preset), ShapeNet(network_preset), name=f"untrained-{preset}")
 
     def check_grid(self, grid: VoxelGrid) -> None:
-        """The grid must have the resolution and extent the prior was trained for."""
+        """The grid must have the resolution (and, in the fixed frame, the extent) the prior
+        was trained for."""
         if grid.resolution != self.preset.voxel_resolution:
             raise ValueError(
                 f"prior {self.name!r} ({self.preset.name} preset) predicts "
                 f"{self.preset.voxel_resolution}^3 voxels; the grid has {grid.resolution}^3"
             )
-        if abs(grid.extent_m - self.grid_extent_m) > 1e-6:
+        if self.frame == "fixed" and abs(grid.extent_m - self.grid_extent_m) > 1e-6:
             raise ValueError(
                 f"prior {self.name!r} was trained for a {self.grid_extent_m} m grid, "
                 f"not {grid.extent_m} m"
@@ -187,10 +207,14 @@ class ShapePrior:
         depth_m: np.ndarray | None = None,
     ) -> PriorPrediction:
         """Voxels from a full camera frame: (H, W, 3) uint8 RGB, its pinhole intrinsics and
-        ``pose_world_camera``; ``grid`` is the registered voxel grid. With ``depth_m`` (H, W
-        z-depth metres registered to the colour image, 0 = no return; RGB-D mode) the sensor
-        depth replaces the predicted depth wherever it returned."""
+        ``pose_world_camera``; ``grid`` is the registered voxel grid (in the object frame, its
+        axes and object point place the search grid; the prediction's ``grid`` is the fitted
+        one). With ``depth_m`` (H, W z-depth metres registered to the colour image, 0 = no
+        return; RGB-D mode) the sensor depth replaces the predicted depth wherever it returned
+        (and finds the object's silhouette in the object frame)."""
         self.check_grid(grid)
+        if self.frame == "object":
+            grid = self.object_grid(colour_rgb, intrinsics, pose_world_camera, grid, depth_m)
         crop = grid_crop(intrinsics, pose_world_camera, grid, self.preset.image_size)
         rgb = torch.from_numpy(crop_image(colour_rgb, crop)).permute(2, 0, 1)[None]
         sketches = self.sketch_net(normalise_rgb(rgb.to(self.device)))
@@ -213,6 +237,34 @@ class ShapePrior:
             crop=crop,
             grid=grid,
         )
+
+    def object_grid(
+        self,
+        colour_rgb: np.ndarray,
+        intrinsics: CameraIntrinsics,
+        pose_world_camera: np.ndarray,
+        registered: VoxelGrid,
+        depth_m: np.ndarray | None = None,
+    ) -> VoxelGrid:
+        """The grid fitted to the object: its silhouette in the search crop (from the sensor's
+        depth with RGB-D, else the sketch net's), then :func:`fit_object_grid`. An image with no
+        object in it keeps the search grid."""
+        search = search_grid(registered.resolution, registered.axes_world, registered.origin_world)
+        crop = grid_crop(intrinsics, pose_world_camera, search, self.preset.image_size)
+        if depth_m is not None:
+            depth = crop_image(depth_m.astype(np.float32), crop, nearest=True)
+            mask = depth_silhouette(depth, crop.intrinsics, pose_world_camera, search)
+        else:
+            rgb = torch.from_numpy(crop_image(colour_rgb, crop)).permute(2, 0, 1)[None]
+            logits = self.sketch_net(normalise_rgb(rgb.to(self.device)))["silhouette_logits"]
+            mask = (logits[0, 0] > 0).cpu().numpy()
+        try:
+            return fit_object_grid(
+                mask, crop.intrinsics, pose_world_camera, search.axes_world, search.resolution
+            )
+        except FrameError as error:
+            log.warning("prior %s: %s; using the search grid", self.name, error)
+            return search
 
     def decode(self, latent: torch.Tensor) -> torch.Tensor:
         """Latent (200,) or (B, 200) -> probabilities (N, N, N) or (B, N, N, N) in the grid

@@ -161,3 +161,19 @@ def test_eval_prior_command_on_a_user_mesh_file(tmp_path: Path) -> None:
     result = json.loads(out.read_text())
     assert result["objects"][0]["name"] == "carton"
     assert {"iou", "chamfer_mm"} <= set(result["objects"][0]) and "iou" in result["mean"]
+
+
+def test_object_frame_prior_decodes_in_the_grid_fitted_to_the_object(bench_frame) -> None:
+    """RGB-D finds the silhouette from depth, whatever the nets' weights: the fitted grid holds
+    the mug and is smaller than the registered 26 cm cube."""
+    scene, pose, full = bench_frame
+    prior = ShapePrior.untrained("cpu")
+    prior.frame = "object"
+    grid = VoxelGrid(64, 0.26, axes_world=axes_facing_camera(pose[:3, 3]))
+    prediction = prior.predict(full.colour_rgb, FULL, pose, grid, depth_m=full.depth_m)
+    fitted = prediction.grid
+    mug = scene.objects[0].mesh
+    assert fitted.extent_m < 0.26 and fitted.extent_m > float(np.max(mug.extents))
+    inside = fitted.world_to_voxel(mug.sample(2000, seed=0))
+    assert np.mean(np.all((inside >= 0) & (inside <= 64), axis=1)) > 0.97
+    assert prediction.probabilities.shape == (64, 64, 64)
