@@ -160,9 +160,22 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
         help="held-out procedural categories or shape families (default: the 14 categories)",
     )
     prior.add_argument("--shapes-per-category", type=int, default=5)
+    prior.add_argument(
+        "--size-range",
+        nargs=2,
+        type=float,
+        metavar=("LOW", "HIGH"),
+        default=None,
+        help="scale each held-out shape to a largest extent in this range, metres "
+        "(e.g. 0.03 0.06: the small objects)",
+    )
     prior.add_argument("--input", choices=("rgb", "rgbd"), default="rgb")
     prior.add_argument("--views", type=int, default=4, help="random object yaws per object")
-    prior.add_argument("--prior", default=None, help="prior name (default: the config's)")
+    prior.add_argument(
+        "--prior",
+        default=None,
+        help="prior name, or 'auto' to choose among all priors per view (default: the config's)",
+    )
     prior.add_argument("--preset", default=None, help="network preset (default: the config's)")
     prior.add_argument("--weights-dir", default=None, help="default: the config's / shipped")
     prior.add_argument("--seed", type=int, default=0, help="view seed")
@@ -282,8 +295,9 @@ def evaluation_camera(config: Config) -> BenchCamera:
 
 
 def eval_prior(args: argparse.Namespace) -> int:
+    from models.prior.auto import AUTO
     from models.prior.evaluation import EvalObject, evaluate_prior, held_out_objects
-    from models.prior.shape_prior import ShapePrior
+    from models.prior.shape_prior import ShapePrior, available_priors
     from models.shapes import load_mesh_file
 
     config = load_config(args.config)
@@ -293,7 +307,17 @@ def eval_prior(args: argparse.Namespace) -> int:
         preset=args.preset or config.models.preset,
         weights_dir=args.weights_dir or config.models.weights_dir,
     )
-    prior = ShapePrior.from_config(models)
+    if models.prior == AUTO:
+        names = sorted(
+            name
+            for name, specs in available_priors(models.weights_dir or None).items()
+            if models.preset in {spec.preset for spec in specs}
+        )
+    else:
+        names = [models.prior]
+    priors = {
+        name: ShapePrior.from_config(dataclasses.replace(models, prior=name)) for name in names
+    }
     if args.objects:
         objects = [
             EvalObject(
@@ -304,9 +328,10 @@ def eval_prior(args: argparse.Namespace) -> int:
             for path in args.objects
         ]
     else:
-        objects = held_out_objects(args.categories, args.shapes_per_category)
+        size = tuple(args.size_range) if args.size_range else None
+        objects = held_out_objects(args.categories, args.shapes_per_category, size_range_m=size)
     result = evaluate_prior(
-        prior,
+        priors,
         objects,
         evaluation_camera(config),
         views=args.views,

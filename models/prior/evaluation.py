@@ -5,14 +5,15 @@ Each object stands on the bench table at the object point and is seen by the dep
 Held-out procedural shapes use shape seeds from :data:`models.prior.dataset.EVAL_SEED_START` on,
 never used for training data. Metrics per view: voxel IoU at 0.5 against the voxelised true mesh
 in the registered grid, Chamfer distance (mm, unsquared, pred->gt + gt->pred means over 10,000
-surface samples each) and F-scores at 2 and 5 mm (see :mod:`models.metrics`); an object's numbers
-are the means over its views.
+surface samples each), F-scores at 2 and 5 mm (see :mod:`models.metrics`), and the object's size:
+the extent of the predicted occupancy (v > 0.5) along each grid axis against the true mesh's,
+as a relative error; an object's numbers are the means over its views (its size error the median).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -22,9 +23,9 @@ import trimesh
 from models.camera import CameraIntrinsics
 from models.geometry import VoxelGrid, axes_facing_camera, make_transform, rotation_about_axis
 from models.metrics import mesh_metrics, voxel_iou
-from models.prior.dataset import EVAL_SEED_START, shape_rngs
+from models.prior.auto import AUTO, choose_prior
+from models.prior.dataset import EVAL_SEED_START, SHAPE_GROUPS, generated_shape, shape_rngs
 from models.prior.shape_prior import ShapePrior
-from models.procedural import ALL_CATEGORIES, procedural_shape
 from models.render import Scene, apply_kinect_depth_noise, render
 from models.shapes import voxelize
 
@@ -49,23 +50,45 @@ class BenchCamera:
 
 
 def held_out_objects(
-    categories: Sequence[str], shapes_per_category: int, first_seed: int = EVAL_SEED_START
+    categories: Sequence[str],
+    shapes_per_category: int,
+    first_seed: int = EVAL_SEED_START,
+    *,
+    size_range_m: tuple[float, float] | None = None,
 ) -> list[EvalObject]:
-    """Procedural shapes with seeds ``first_seed ..`` (>= EVAL_SEED_START: never trained on)."""
+    """Generated shapes (categories or families) with seeds ``first_seed ..`` (>=
+    EVAL_SEED_START: never trained on). With ``size_range_m`` each is scaled to a largest
+    extent drawn in that range (e.g. 3-6 cm: the small objects)."""
     if first_seed < EVAL_SEED_START:
         raise ValueError(f"held-out shape seeds start at {EVAL_SEED_START}")
     objects = []
     for category in categories:
         for n in range(shapes_per_category):
             seed = first_seed + n
-            shape_rng, _ = shape_rngs(ALL_CATEGORIES.index(category), seed)
-            mesh = procedural_shape(category, shape_rng)
+            shape_rng, _ = shape_rngs(SHAPE_GROUPS.index(category), seed)
+            mesh = generated_shape(category, shape_rng)
+            if size_range_m is not None:
+                mesh.apply_scale(shape_rng.uniform(*size_range_m) / float(np.max(mesh.extents)))
             objects.append(EvalObject(f"{category}_{seed}", category, mesh))
     return objects
 
 
+def extent_errors(
+    probabilities: np.ndarray, grid: VoxelGrid, mesh_world: trimesh.Trimesh
+) -> np.ndarray:
+    """Relative error of the predicted occupancy's extent along each grid axis (x, y, z) against
+    the true mesh's (NaN for an empty prediction)."""
+    occupied = np.argwhere(probabilities > 0.5)
+    if len(occupied) == 0:
+        return np.full(3, np.nan)
+    predicted = (occupied.max(axis=0) - occupied.min(axis=0) + 1) * grid.voxel_size_m
+    axes = np.asarray(grid.axes_world)
+    true = np.ptp(np.asarray(mesh_world.vertices) @ axes.T, axis=0)
+    return (predicted - true) / true
+
+
 def evaluate_prior(
-    prior: ShapePrior,
+    priors: Mapping[str, ShapePrior],
     objects: Sequence[EvalObject],
     camera: BenchCamera,
     *,
@@ -75,17 +98,20 @@ def evaluate_prior(
     progress: bool = True,
 ) -> dict:
     """Per-object and mean metrics, as ``{"objects": [...], "mean": {...}, "per_category":
-    {...}}`` with ``iou``, ``chamfer_mm``, ``fscore_2mm``, ``fscore_5mm``."""
+    {...}}`` with ``iou``, ``chamfer_mm``, ``fscore_2mm``, ``fscore_5mm`` and the size errors.
+    One prior is evaluated as it is; several are chosen from per view (``prior = "auto"``)."""
     from tqdm import tqdm
 
-    n = prior.preset.voxel_resolution
+    first = next(iter(priors.values()))
+    name = first.name if len(priors) == 1 else AUTO
     grid = VoxelGrid(
-        n, prior.grid_extent_m, (0.0, 0.0, 0.0), axes_facing_camera(camera.pose_world_camera[:3, 3])
+        first.preset.voxel_resolution,
+        first.grid_extent_m,
+        (0.0, 0.0, 0.0),
+        axes_facing_camera(camera.pose_world_camera[:3, 3]),
     )
     rows = []
-    bar = tqdm(
-        total=len(objects) * views, desc=f"eval {prior.name} {input_mode}", disable=not progress
-    )
+    bar = tqdm(total=len(objects) * views, desc=f"eval {name} {input_mode}", disable=not progress)
     for index, obj in enumerate(objects):
         rng = np.random.default_rng((seed, index))
         per_view = []
@@ -100,8 +126,13 @@ def evaluate_prior(
                 depth = apply_kinect_depth_noise(
                     frame.depth_m, frame.normals_camera, rng, intrinsics=camera.intrinsics
                 )
-            prediction = prior.predict(
-                frame.colour_rgb, camera.intrinsics, camera.pose_world_camera, grid, depth_m=depth
+            prediction, _ = choose_prior(
+                priors,
+                frame.colour_rgb,
+                camera.intrinsics,
+                camera.pose_world_camera,
+                grid,
+                depth_m=depth,
             )
             # An object-frame prior decodes in the grid it fitted to the object.
             truth = voxelize(mesh_world, prediction.grid)
@@ -111,8 +142,12 @@ def evaluate_prior(
                 mesh_world,
                 seed=int(rng.integers(1 << 31)),
             )
+            errors = extent_errors(prediction.probabilities, prediction.grid, mesh_world)
             per_view.append(
                 {
+                    "size_error": float(np.max(np.abs(errors))),
+                    "extent_error_xyz": errors.tolist(),
+                    "prior": prediction.prior,
                     "iou": voxel_iou(
                         prediction.probabilities[None], truth[None].astype(np.float32)
                     ),
@@ -126,7 +161,12 @@ def evaluate_prior(
             )
             bar.update()
         row: dict = {"name": obj.name, "category": obj.category}
-        row.update({key: _mean([v[key] for v in per_view]) for key in per_view[0]})
+        row.update({key: _mean([v[key] for v in per_view]) for key in SCORES})
+        row["size_error"] = _median([v["size_error"] for v in per_view])
+        row["extent_error_xyz"] = [
+            _median([v["extent_error_xyz"][axis] for v in per_view]) for axis in range(3)
+        ]
+        row["priors_chosen"] = sorted({v["prior"] for v in per_view})
         row["empty_views"] = int(sum(math.isnan(v["chamfer_mm"]) for v in per_view))
         rows.append(row)
     bar.close()
@@ -135,8 +175,8 @@ def evaluate_prior(
         for category in dict.fromkeys(r["category"] for r in rows)
     }
     return {
-        "prior": prior.name,
-        "preset": prior.preset.name,
+        "prior": name,
+        "preset": first.preset.name,
         "input": input_mode,
         "views": views,
         "chamfer": "mm, unsquared: mean NN distance pred->gt + gt->pred, 10k samples each; "
@@ -147,6 +187,15 @@ def evaluate_prior(
     }
 
 
+SCORES = ("iou", "chamfer_mm", "fscore_2mm", "fscore_5mm")
+
+
+def _median(values: Sequence[float]) -> float | None:
+    """Median over the finite values; None (JSON null) when there are none."""
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    return float(np.median(finite)) if finite else None
+
+
 def _mean(values: Sequence[float]) -> float | None:
     """Mean over the finite values; None (JSON null) when there are none."""
     finite = [v for v in values if v is not None and math.isfinite(v)]
@@ -154,10 +203,8 @@ def _mean(values: Sequence[float]) -> float | None:
 
 
 def _summary(rows: Sequence[dict]) -> dict:
-    summary: dict = {
-        key: _mean([r[key] for r in rows])
-        for key in ("iou", "chamfer_mm", "fscore_2mm", "fscore_5mm")
-    }
+    summary: dict = {key: _mean([r[key] for r in rows]) for key in SCORES}
+    summary["size_error_median"] = _median([r["size_error"] for r in rows])
     summary["objects"] = len(rows)
     summary["empty_views"] = int(sum(r["empty_views"] for r in rows))
     return summary

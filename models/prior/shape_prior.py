@@ -88,7 +88,8 @@ class PriorPrediction:
 
     ``probabilities`` (N, N, N) float32 occupancy in ``grid`` indexed [i, j, k]; ``latent`` the
     (200,) code; ``depth_m`` (metres, 0 = background), ``normals_camera`` (camera frame) and
-    ``silhouette`` (probability) are the predicted sketches on the crop's pixels (``crop``).
+    ``silhouette`` (probability) are the predicted sketches on the crop's pixels (``crop``);
+    ``prior`` names the prior that made it.
     """
 
     probabilities: np.ndarray
@@ -98,6 +99,7 @@ class PriorPrediction:
     silhouette: np.ndarray
     crop: GridCrop
     grid: VoxelGrid
+    prior: str
 
 
 class ShapePrior:
@@ -236,6 +238,7 @@ class ShapePrior:
             silhouette=silhouette[0, 0].cpu().numpy(),
             crop=crop,
             grid=grid,
+            prior=self.name,
         )
 
     def object_grid(

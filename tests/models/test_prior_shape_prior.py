@@ -161,6 +161,10 @@ def test_eval_prior_command_on_a_user_mesh_file(tmp_path: Path) -> None:
     result = json.loads(out.read_text())
     assert result["objects"][0]["name"] == "carton"
     assert {"iou", "chamfer_mm"} <= set(result["objects"][0]) and "iou" in result["mean"]
+    row = result["objects"][0]
+    assert row["priors_chosen"] == ["general"] and len(row["extent_error_xyz"]) == 3
+    assert {"fscore_2mm", "fscore_5mm", "size_error"} <= set(row)
+    assert "size_error_median" in result["mean"]
 
 
 def test_object_frame_prior_decodes_in_the_grid_fitted_to_the_object(bench_frame) -> None:
