@@ -8,26 +8,46 @@ their drivers (``drivers.config``); the rest lives here.
 from __future__ import annotations
 
 import dataclasses
+import math
+import re
 import tomllib
 import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from drivers.config import (
     ArmConfig,
     CameraConfig,
+    FieldError,
     GripperConfig,
     SensorConfig,
     SimConfig,
     Vec3,
+    require_finite,
+    require_positive,
 )
 from models.geometry import VoxelGrid, axes_facing_camera
+
+NAME_PATTERN = re.compile(r"[A-Za-z0-9_-]{1,64}")
+"""Names a client or a config may give (priors): no paths, no spaces, bounded."""
 
 
 class ConfigError(ValueError):
     """A configuration file is unreadable or has an unknown key or a bad value."""
+
+
+@dataclass(frozen=True)
+class Range:
+    """Inclusive bounds of an ``Annotated[int, Range(...)]`` field: the validator checks the type
+    and the bounds together, so every bad value gets the same wording ("an integer in 1..100")."""
+
+    low: int
+    high: int
+
+    def __str__(self) -> str:
+        return f"{self.low}..{self.high}"
 
 
 @dataclass(frozen=True)
@@ -38,7 +58,7 @@ class RobotConfig:
 
     def __post_init__(self) -> None:
         if not self.id or any(c in self.id for c in "/*$?#"):
-            raise ValueError("id must be a non-empty key-expression chunk (no / * $ ? #)")
+            raise FieldError("id", "must be a non-empty key-expression chunk (no / * $ ? #)")
 
 
 @dataclass(frozen=True)
@@ -70,23 +90,42 @@ class LimitsConfig:
     shape_clearance_m: float = 0.01
 
     def __post_init__(self) -> None:
+        # Written so that NaN fails: every comparison with NaN is false.
+        require_finite(self, "workspace_min_world", "workspace_max_world")
         low, high = self.workspace_min_world, self.workspace_max_world
-        if any(lo >= hi for lo, hi in zip(low, high, strict=True)):
-            raise ValueError("workspace_min_world must be below workspace_max_world on every axis")
-        positive = (
-            self.max_tcp_speed_m_s,
-            self.max_tcp_acceleration_m_s2,
-            self.approach_speed_m_s,
-            self.max_joint_speed_rad_s,
-            self.max_force_n,
-            self.contact_force_n,
+        if not all(lo < hi for lo, hi in zip(low, high, strict=True)):
+            raise FieldError(
+                "workspace_min_world", f"must be below workspace_max_world on every axis: {low}"
+            )
+        require_positive(
+            self,
+            "max_tcp_speed_m_s",
+            "max_tcp_acceleration_m_s2",
+            "approach_speed_m_s",
+            "max_joint_speed_rad_s",
+            "max_force_n",
+            "contact_force_n",
+            "approach_contact_force_n",
+            "table_clearance_m",
+            "shape_clearance_m",
         )
-        if min(positive) <= 0:
-            raise ValueError("speeds, accelerations and forces must be positive")
-        if self.contact_force_n >= self.max_force_n:
-            raise ValueError("contact_force_n must be below max_force_n")
-        if not 0 < self.approach_contact_force_n <= self.contact_force_n:
-            raise ValueError("approach_contact_force_n must be in (0, contact_force_n]")
+        if not self.approach_speed_m_s <= self.max_tcp_speed_m_s:
+            raise FieldError(
+                "approach_speed_m_s",
+                f"must be at most max_tcp_speed_m_s ({self.max_tcp_speed_m_s}),"
+                f" got {self.approach_speed_m_s}",
+            )
+        if not self.contact_force_n < self.max_force_n:
+            raise FieldError(
+                "contact_force_n",
+                f"must be below max_force_n ({self.max_force_n}), got {self.contact_force_n}",
+            )
+        if not self.approach_contact_force_n <= self.contact_force_n:
+            raise FieldError(
+                "approach_contact_force_n",
+                f"must be at most contact_force_n ({self.contact_force_n}),"
+                f" got {self.approach_contact_force_n}",
+            )
 
 
 @dataclass(frozen=True)
@@ -111,13 +150,20 @@ class MotionConfig:
     """Spacing of the poses checked along every straight-line motion."""
 
     def __post_init__(self) -> None:
-        if not 0 < self.standoff_m < self.approach_distance_m:
-            raise ValueError("need 0 < standoff_m < approach_distance_m")
-        positive = (self.finger_speed_m_s, self.safe_height_margin_m, self.path_check_step_m)
-        if min(positive) <= 0 or self.touch_width_m < 0:
-            raise ValueError("speeds, margins and steps must be positive")
+        require_positive(
+            self,
+            "approach_distance_m",
+            "standoff_m",
+            "finger_speed_m_s",
+            "safe_height_margin_m",
+            "path_check_step_m",
+        )
+        if not self.standoff_m < self.approach_distance_m:
+            raise FieldError("standoff_m", "must be below approach_distance_m")
+        if not (math.isfinite(self.touch_width_m) and self.touch_width_m >= 0):
+            raise FieldError("touch_width_m", f"must be >= 0, got {self.touch_width_m}")
         if not 0 <= self.direct_move_max_angle_deg <= 180:
-            raise ValueError("direct_move_max_angle_deg must be in [0, 180]")
+            raise FieldError("direct_move_max_angle_deg", "must be in [0, 180]")
 
 
 @dataclass(frozen=True)
@@ -129,8 +175,10 @@ class VoxelGridConfig:
     """Bottom centre of the grid on the table (o_w in the paper)."""
 
     def __post_init__(self) -> None:
-        if not 8 <= self.resolution <= 256 or self.extent_m <= 0:
-            raise ValueError("resolution must be in [8, 256] and extent_m positive")
+        if not 8 <= self.resolution <= 256:
+            raise FieldError("resolution", f"must be in [8, 256], got {self.resolution}")
+        require_positive(self, "extent_m")
+        require_finite(self, "object_point_world")
 
     def grid(self, camera_position_world: Vec3) -> VoxelGrid:
         """The registered grid; its axes follow the camera's yaw (the frame the prior uses)."""
@@ -162,10 +210,13 @@ class ModelsConfig:
     """Write the touches' measured voxels into the refined shape (empty 0, occupied 1)."""
 
     def __post_init__(self) -> None:
-        if self.refine_learning_rate <= 0 or self.refine_iterations_per_touch < 0:
-            raise ValueError("refine_learning_rate must be > 0, refine_iterations_per_touch >= 0")
-        if self.refine_anchor_weight < 0:
-            raise ValueError("refine_anchor_weight must be >= 0")
+        if not NAME_PATTERN.fullmatch(self.prior):
+            raise FieldError("prior", "must be 1..64 letters, digits, '_' or '-'")
+        require_positive(self, "refine_learning_rate")
+        if self.refine_iterations_per_touch < 0:
+            raise FieldError("refine_iterations_per_touch", "must be >= 0")
+        if not (math.isfinite(self.refine_anchor_weight) and self.refine_anchor_weight >= 0):
+            raise FieldError("refine_anchor_weight", "must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -192,10 +243,33 @@ class MessagingConfig:
     open_timeout_s: float = 5.0
 
     def __post_init__(self) -> None:
+        for name in ("listen", "connect"):
+            for endpoint in getattr(self, name):
+                problem = endpoint_problem(endpoint)
+                if problem:
+                    raise FieldError(name, f"endpoint {_short(endpoint)} {problem}")
         if bool(self.user) != bool(self.password_file):
-            raise ValueError("user and password_file are set together")
-        if self.open_timeout_s <= 0:
-            raise ValueError("open_timeout_s must be positive")
+            raise FieldError("password_file", "and user are set together")
+        require_positive(self, "open_timeout_s")
+
+
+_PORTED_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+
+
+def endpoint_problem(endpoint: str) -> str | None:
+    """What is wrong with a Zenoh endpoint ``<protocol>/<address>[?metadata][#config]``, or None;
+    for IP protocols the address must end in a port 0..65535 (Zenoh's own errors do not
+    always say which endpoint they mean)."""
+    locator = endpoint.split("#", 1)[0].split("?", 1)[0]
+    protocol, slash, address = locator.partition("/")
+    if not (protocol and slash and address):
+        return "is not of the form <protocol>/<address>"
+    if protocol in _PORTED_PROTOCOLS:
+        host, colon, port = address.rpartition(":")
+        digits = port.isascii() and port.isdigit() and len(port) <= 5
+        if not (host and colon and digits and int(port) <= 65535):
+            return "needs <host>:<port> with a port in 0..65535"
+    return None
 
 
 @dataclass(frozen=True)
@@ -294,26 +368,35 @@ def build_dataclass(
     if not isinstance(data, dict):
         where = f"[{prefix}]" if prefix else "the top level"
         raise error(f"{source}: {where} must be a table, got {type(data).__name__}")
-    hints = typing.get_type_hints(cls)
+    hints = typing.get_type_hints(cls, include_extras=True)
     names = {f.name for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(data) - names)
     if unknown:
         key = f"{prefix}.{unknown[0]}" if prefix else unknown[0]
-        raise error(f"{source}: unknown key '{key}' (known: {', '.join(sorted(names))})")
+        raise error(f"{source}: unknown key {_short(key)} (known: {', '.join(sorted(names))})")
     values = {}
     for name, raw in data.items():
         key = f"{prefix}.{name}" if prefix else name
         values[name] = _coerce(hints[name], raw, key=key, source=source, error=error)
     try:
         return cls(**values)
+    except FieldError as failure:
+        key = f"{prefix}.{failure.field}" if prefix else failure.field
+        raise error(f"{source}: '{key}' {failure.message}") from None
     except ValueError as failure:
         where = prefix or "config"
         raise error(f"{source}: bad value in [{where}]: {failure}") from None
 
 
+def _short(value: Any, limit: int = 40) -> str:
+    """``repr`` cut to ``limit`` characters: errors never echo a megabyte of input."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[: limit - 3]}..."
+
+
 def _coerce(hint: Any, raw: Any, *, key: str, source: str, error: type[ValueError]) -> Any:
     def bad(expected: str) -> ValueError:
-        return error(f"{source}: '{key}' must be {expected}, got {raw!r}")
+        return error(f"{source}: '{key}' must be {expected}, got {_short(raw)}")
 
     def inner(inner_hint: Any, value: Any) -> Any:
         return _coerce(inner_hint, value, key=key, source=source, error=error)
@@ -321,6 +404,12 @@ def _coerce(hint: Any, raw: Any, *, key: str, source: str, error: type[ValueErro
     origin = typing.get_origin(hint)
     if dataclasses.is_dataclass(hint):
         return build_dataclass(hint, raw, prefix=key, source=source, error=error)
+    if origin is Annotated:  # an integer and its Range
+        bounds = typing.get_args(hint)[1]
+        is_int = isinstance(raw, int) and not isinstance(raw, bool)
+        if not (is_int and bounds.low <= raw <= bounds.high):
+            raise bad(f"an integer in {bounds}")
+        return raw
     if origin is Literal:
         if raw not in typing.get_args(hint):
             raise bad("one of " + ", ".join(repr(a) for a in typing.get_args(hint)))
@@ -348,7 +437,14 @@ def _coerce(hint: Any, raw: Any, *, key: str, source: str, error: type[ValueErro
     if hint is float:
         if isinstance(raw, bool) or not isinstance(raw, int | float):
             raise bad("a number")
-        return float(raw)
+        # NaN passes every "x <= limit" check and inf every "x > 0": no limit may be either.
+        try:
+            value = float(raw)
+        except OverflowError:
+            raise bad("a finite number") from None
+        if not math.isfinite(value):
+            raise bad("a finite number")
+        return value
     if hint is str:
         if not isinstance(raw, str):
             raise bad("a string")

@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import re
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -23,6 +24,26 @@ from controller.config import MessagingConfig
 log = logging.getLogger(__name__)
 
 Handler = Callable[[bytes], Awaitable[dict[str, Any]]]
+
+
+class EndpointError(ValueError):
+    """The Zenoh session cannot be opened on its endpoints (port in use, bad address)."""
+
+
+def open_session(messaging: MessagingConfig) -> zenoh.Session:
+    """Open (and bind) the Zenoh session; ``EndpointError``, one line naming the endpoints,
+    when Zenoh refuses them."""
+    endpoints = ", ".join(messaging.listen + messaging.connect) or "(no endpoint)"
+    try:
+        return zenoh.open(zenoh_config(messaging))
+    except zenoh.ZError as error:
+        raise EndpointError(f"cannot open Zenoh on {endpoints}: {_zenoh_reason(error)}") from None
+
+
+def _zenoh_reason(error: zenoh.ZError) -> str:
+    """Zenoh's message without its source locations (" at /.../file.rs:61."), on one line."""
+    text = re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(error))
+    return " ".join(text.split())
 
 
 def zenoh_config(messaging: MessagingConfig) -> zenoh.Config:

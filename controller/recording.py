@@ -7,14 +7,22 @@ makes for the life of the process (rerun-io/rerun#2116), so one per session grew
 service by ~1.5 MB a session. Each session's recording stream is destroyed when it is closed.
 
 Entity paths mirror the frame tree (``world/kinect``, ``world/ur5/tcp``, ``world/ur5/pad``);
-timelines are ``touch`` (sequence) and ``time`` (wall clock). ``touches.jsonl`` is appended and
-flushed as each touch completes, so a crash loses nothing already measured.
+timelines are ``touch`` (sequence) and ``time`` (wall clock).
+
+A crash loses nothing already measured: as each touch completes the recording is flushed to its
+file, then the touch is appended to ``touches.jsonl`` (flushed, fsynced), so a line there means
+the recording holds that touch. A killed session's folder has no ``summary.json`` and its .rrd
+no footer; ``recover_interrupted_sessions`` (run at service start-up) writes the summary with
+``state: "interrupted"`` and rewrites the .rrd with a footer.
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
+import logging
 import os
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -24,12 +32,16 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 import rerun_bindings
+import rerun_cli
 from numpy.typing import NDArray
+from rerun.chunk import RrdReader
 
 from drivers.base import RGBDFrame
 from models.files import write_json_atomically
 from models.geometry import VoxelGrid
 from models.metrics import voxel_surface_mesh
+
+log = logging.getLogger(__name__)
 
 
 def _confidence_colours(probabilities: NDArray[np.floating]) -> NDArray[np.uint8]:
@@ -56,6 +68,7 @@ def _blueprint() -> rrb.Blueprint:
 
 
 BLUEPRINT_FILE = "touchshape.rbl"
+REQUEST_FILE = "request.json"
 _blueprints_written: set[Path] = set()
 _blueprints_lock = threading.Lock()
 
@@ -73,25 +86,32 @@ def save_blueprint(logs_dir: Path) -> Path:
 class SessionRecorder:
     """Records one session; create it at session start and ``close()`` it at the end."""
 
-    def __init__(self, logs_dir: Path, session_id: str) -> None:
+    def __init__(
+        self, logs_dir: Path, session_id: str, request: dict[str, Any] | None = None
+    ) -> None:
         self.session_id = session_id
         self.rrd_path = logs_dir / f"{session_id}.rrd"
         self.artifacts_dir = logs_dir / session_id
         self.artifacts_dir.mkdir(parents=True, exist_ok=True)
         self.touches_path = self.artifacts_dir / "touches.jsonl"
         self.blueprint_path = save_blueprint(logs_dir)
+        if request is not None:  # for the summary of a session a crash ends
+            write_json_atomically(self.artifacts_dir / REQUEST_FILE, request)
         self._rec: rr.RecordingStream | None = rr.RecordingStream(
             "touchshape", recording_id=session_id
         )
         self._rec.save(str(self.rrd_path))
         self._touch = 0
         self._touches_file = self.touches_path.open("a", encoding="utf-8")
+        # Held while the session records (the kernel drops it when the process dies): start-up
+        # recovery leaves a session alone that another process is still recording.
+        fcntl.flock(self._touches_file, fcntl.LOCK_EX | fcntl.LOCK_NB)
 
     # --- timelines ------------------------------------------------------------------------------
 
     def _now(self, touch: int | None = None) -> None:
         # set_time is per thread and per call site: set it right before each log, no await
-        # in between (the recorder is only used from the event loop thread).
+        # in between, on the thread that logs (the session logs images from worker threads).
         if self._rec is None:
             return
         self._rec.set_time("touch", sequence=self._touch if touch is None else touch)
@@ -194,11 +214,10 @@ class SessionRecorder:
             )
 
     def log_touch(self, record: dict[str, Any], rays_world: NDArray[np.float64] | None) -> None:
-        """One completed touch: its record (appended to touches.jsonl now) and its rays."""
+        """A touch's last record: its target, contact and rays; then the recording is flushed to
+        its file (with the tactile image and height map logged before) and the record appended
+        to touches.jsonl, so a killed session's .rrd holds every touch that file lists."""
         self._now()
-        self._touches_file.write(json.dumps(record) + "\n")
-        self._touches_file.flush()
-        os.fsync(self._touches_file.fileno())
         target = np.asarray(record["target_world"])
         direction = np.asarray(record["direction_world"])
         self._log(
@@ -212,6 +231,11 @@ class SessionRecorder:
             )
         if rays_world is not None and len(rays_world):
             self._log("world/touch/rays", rr.LineStrips3D(rays_world))
+        if self._rec is not None:
+            self._rec.flush()
+        self._touches_file.write(json.dumps(record) + "\n")
+        self._touches_file.flush()
+        os.fsync(self._touches_file.fileno())
 
     def log_tactile(
         self, image_bgr: NDArray[np.uint8], height_map_mm: NDArray[np.floating] | None
@@ -258,3 +282,135 @@ class SessionRecorder:
         # (batcher, buffers) would stay for the life of the process (rerun-io/rerun#2116).
         self._rec = None
         rerun_bindings.flush_and_cleanup_orphaned_recordings()
+
+
+# --- sessions a crash ended -------------------------------------------------------------------
+
+INTERRUPTED = "interrupted"
+REWRITE_TIMEOUT_S = 300.0
+
+
+def recover_interrupted_sessions(logs_dir: Path) -> list[dict[str, Any]]:
+    """Give every session in ``logs_dir`` that a crash left without ``summary.json`` one, with
+    ``state: "interrupted"`` and the touches ``touches.jsonl`` lists, and rewrite its recording
+    with a footer. Sessions another process is still recording are left alone. Returns the
+    summaries written."""
+    if not logs_dir.is_dir():
+        return []
+    summaries = []
+    for folder in sorted(logs_dir.iterdir()):
+        touches_path = folder / "touches.jsonl"
+        if not touches_path.is_file() or (folder / "summary.json").exists():
+            continue
+        try:
+            with touches_path.open("rb") as touches_file:
+                try:
+                    fcntl.flock(touches_file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    log.info("session %s is being recorded by a running process", folder)
+                    continue
+                summaries.append(_summarise_interrupted(folder, touches_file.read()))
+        except OSError as error:  # an unreadable folder must not keep the service from starting
+            log.warning("session %s: could not write its interrupted summary: %s", folder, error)
+    return summaries
+
+
+def _summarise_interrupted(folder: Path, touches_jsonl: bytes) -> dict[str, Any]:
+    touches, skipped = _read_touches(folder / "touches.jsonl", touches_jsonl)
+    rrd_path = folder.with_name(f"{folder.name}.rrd")
+    summary = {
+        "session": folder.name,
+        "state": INTERRUPTED,
+        "touches": len(touches),
+        "contacts": sum(bool(touch.get("contact")) for touch in touches),
+        "error": "the service ended without closing the session (killed or crashed); "
+        "found at the next start-up",
+        "request": _read_request(folder / REQUEST_FILE),
+        "recovery": {
+            "recording": _add_footer(rrd_path, folder.name),
+            "skipped_touch_lines": skipped,
+        },
+        "artifacts": {
+            "recording": str(rrd_path),
+            "touches": str(folder / "touches.jsonl"),
+            "summary": str(folder / "summary.json"),
+        },
+    }
+    write_json_atomically(folder / "summary.json", summary)
+    log.warning(
+        "session %s was interrupted: %s written (%d touches)",
+        folder.name,
+        folder / "summary.json",
+        len(touches),
+    )
+    return summary
+
+
+def _read_touches(path: Path, text: bytes) -> tuple[list[dict[str, Any]], list[int]]:
+    """The touch records in ``touches.jsonl``, and the numbers of the lines that are not one
+    (the last line a kill cut short): skipped with a warning, the rest kept."""
+    touches, skipped = [], []
+    for number, line in enumerate(text.splitlines(), start=1):
+        try:
+            record = json.loads(line)
+        except (UnicodeDecodeError, json.JSONDecodeError):
+            record = None
+        if isinstance(record, dict) and isinstance(record.get("touch"), int):
+            touches.append(record)
+        else:
+            skipped.append(number)
+            log.warning("%s line %d: not a complete touch record, skipped", path, number)
+    return touches, skipped
+
+
+def _read_request(path: Path) -> dict[str, Any] | None:
+    try:
+        request = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return request if isinstance(request, dict) else None
+
+
+def _add_footer(rrd_path: Path, recording_id: str) -> str:
+    """Rewrite a recording a kill left without its footer (its last message maybe cut short)
+    with Rerun's own ``rerun rrd merge``, then put it in place in one rename. The original stays
+    when the rewrite fails: ``merge`` refuses a file with an undecodable message in it, and
+    drops only a last message that ends early. Returns what was done."""
+    if not rrd_path.is_file():
+        return "missing"
+    rewritten = rrd_path.with_name(f".{rrd_path.name}.rewrite.rrd")
+    # The binary itself: `python -m rerun_cli` exits 0 whatever the command returns.
+    command = [str(Path(rerun_cli.__file__).with_name("rerun")), "rrd", "merge", str(rrd_path)]
+    try:
+        merged = subprocess.run(
+            [*command, "-o", str(rewritten)],
+            capture_output=True,
+            text=True,
+            timeout=REWRITE_TIMEOUT_S,
+        )
+        if merged.returncode != 0:
+            reason = (merged.stderr.strip().splitlines() or ["failed"])[-1]
+        elif not _holds_recording(rewritten, recording_id):
+            reason = f"the rewrite holds no recording {recording_id}"
+        else:
+            os.replace(rewritten, rrd_path)
+            return "rewritten with a footer"
+    except subprocess.TimeoutExpired:
+        reason = f"took over {REWRITE_TIMEOUT_S:.0f} s"
+    finally:
+        rewritten.unlink(missing_ok=True)
+    log.warning("%s: kept as written, without a footer: rerun rrd merge: %s", rrd_path, reason)
+    return f"kept as written, without a footer (rerun rrd merge: {reason})"
+
+
+def _holds_recording(rrd_path: Path, recording_id: str) -> bool:
+    """Whether the file has a footer and the session's recording (``rerun rrd merge`` turns an
+    empty or header-only file into a valid file without any recording)."""
+    try:
+        reader = RrdReader(rrd_path)
+        return any(
+            entry.recording_id == recording_id and len(reader.store(store=entry)) > 0
+            for entry in reader.recordings()
+        )
+    except (OSError, RuntimeError, ValueError):
+        return False

@@ -1,8 +1,9 @@
 """The long-running service: devices, the Zenoh API and one exploration session at a time.
 
-``TouchshapeService.run`` connects the devices, declares the API and serves until its stop
-event is set (``touchshape serve`` sets it on SIGINT/SIGTERM); then it aborts a running
-session (stopping all motion), closes Zenoh and the devices, and returns.
+``TouchshapeService.serve`` opens the Zenoh session (a bad endpoint fails before any device
+moves), connects the devices, declares the API and serves until its stop event is set
+(``touchshape serve`` sets it on SIGINT/SIGTERM); then it aborts a running session (stopping all
+motion), closes Zenoh and the devices, and returns.
 """
 
 from __future__ import annotations
@@ -21,9 +22,10 @@ import numpy as np
 import zenoh
 
 from controller.config import Config
-from controller.messaging import ServiceApi, zenoh_config
+from controller.messaging import ServiceApi, open_session
+from controller.motion.safety import Obstacles
 from controller.perception.protocol import Perception, ShapeEstimate
-from controller.recording import SessionRecorder
+from controller.recording import SessionRecorder, recover_interrupted_sessions
 from controller.request import ExploreRequest, RequestError, parse_explore_request
 from controller.session import ExplorationSession
 from controller.states import State
@@ -79,24 +81,46 @@ class TouchshapeService:
         self._session_task: asyncio.Task[dict[str, Any]] | None = None
         self._abort = asyncio.Event()
         self.results: list[dict[str, Any]] = []
+        self._last_done = False
+        """Whether the last session ended done; if not (a fault, an abort, or none yet), the
+        arm is wherever that left it, and the next session starts by going home."""
+        self._last_estimate: ShapeEstimate | None = None
+        """The last shape estimate known: the next way home keeps clear of it (the object is
+        assumed to stay between sessions)."""
         self.defaults = ExploreRequest(prior=config.models.prior)
+        self.prior_names: frozenset[str] = frozenset()
+        """What requests may name as ``prior`` (the perception's, read at start)."""
 
     # --- lifecycle ------------------------------------------------------------------------------
 
     async def start(self) -> None:
         """Connect and home the devices and build the perception (no Zenoh)."""
         config = self.config
-        self.devices = make_devices(
+        # Before any session starts: sessions a crash ended get their summary (interrupted).
+        await asyncio.to_thread(recover_interrupted_sessions, self.logs_dir)
+        log.info(
+            "connecting the devices: arm %s, gripper %s, sensor %s, camera %s",
+            config.robot.arm.type,
+            config.gripper.type,
+            config.sensor.type,
+            config.cameras.rgbd.type,
+        )
+        # Building the simulated world (mesh, scene, gel model) takes a while: off the loop.
+        self.devices = await asyncio.to_thread(
+            make_devices,
             arm=config.robot.arm,
             gripper=config.gripper,
             sensor=config.sensor,
             camera=config.cameras.rgbd,
             sim=config.sim,
             rng=np.random.default_rng(self.rng_seed),
+            max_object_extent_m=config.voxel_grid.extent_m,
         )
         await self.devices.connect()
+        log.info("homing the gripper")
         await self.devices.gripper.home()
         self.perception = await asyncio.to_thread(self.perception_factory, config, self.devices)
+        self.prior_names = await asyncio.to_thread(self.perception.prior_names)
 
     async def stop(self) -> None:
         await self.abort_session()
@@ -104,12 +128,20 @@ class TouchshapeService:
             await self.devices.close()
             self.devices = None
 
-    async def serve(self, stop: asyncio.Event, ready: asyncio.Event | None = None) -> None:
-        """Serve the Zenoh API until ``stop`` is set."""
-        await self.start()
+    async def serve(
+        self,
+        stop: asyncio.Event,
+        ready: asyncio.Event | None = None,
+        session: zenoh.Session | None = None,
+    ) -> None:
+        """Serve the Zenoh API until ``stop`` is set. The Zenoh session is opened (or given, and
+        then owned and closed here) before the devices connect: a taken port or a bad endpoint
+        fails fast (``EndpointError``) with the arm and gripper untouched."""
+        if session is None:
+            session = await asyncio.to_thread(open_session, self.config.messaging)
         loop = asyncio.get_running_loop()
-        session = await asyncio.to_thread(zenoh.open, zenoh_config(self.config.messaging))
         try:
+            await self.start()
             self.api = ServiceApi(
                 session,
                 self.config.robot.id,
@@ -137,7 +169,7 @@ class TouchshapeService:
         assert self.devices is not None and self.perception is not None
         session_id = time.strftime("%Y%m%d-%H%M%S-") + uuid.uuid4().hex[:6]
         self.logs_dir.mkdir(parents=True, exist_ok=True)
-        recorder = SessionRecorder(self.logs_dir, session_id)
+        recorder = SessionRecorder(self.logs_dir, session_id, request.__dict__)
         world = self.devices.world
         session = ExplorationSession(
             session_id=session_id,
@@ -150,6 +182,7 @@ class TouchshapeService:
             publish_shape=lambda estimate: self._publish(
                 "shape", encode_shape(session_id, session.touch_count, estimate)
             ),
+            home_clear_of=None if self._last_done else Obstacles.of_estimate(self._last_estimate),
         )
         camera_position = self.config.cameras.rgbd.pose_world_camera()[:3, 3]
         grid = self.config.voxel_grid.grid(tuple(camera_position))
@@ -168,10 +201,16 @@ class TouchshapeService:
     ) -> dict[str, Any]:
         try:
             summary = await session.run(self._abort)
-            summary["artifacts"] = self._save_artifacts(session, recorder)
+            self._last_done = summary["state"] == str(State.DONE)
+            if session.estimate is not None:
+                self._last_estimate = session.estimate
+            # Compressing the voxels, meshing and writing them, and flushing the recording take
+            # tens of milliseconds or more: worker threads' time, not the event loop's.
+            summary["artifacts"] = await asyncio.to_thread(self._save_artifacts, session, recorder)
         finally:
-            recorder.close()
-        summary["artifacts"]["summary"] = str(recorder.save_summary(summary))
+            await asyncio.to_thread(recorder.close)
+        saved = await asyncio.to_thread(recorder.save_summary, summary)
+        summary["artifacts"]["summary"] = str(saved)
         session.finish()
         self.results.append(summary)
         self._publish("result", summary)
@@ -211,14 +250,17 @@ class TouchshapeService:
 
     async def _on_explore(self, payload: bytes) -> dict[str, Any]:
         try:
-            request = parse_explore_request(payload, self.defaults)
+            request = parse_explore_request(payload, self.defaults, priors=self.prior_names)
             session_id = self.start_session(request)
         except (RequestError, RuntimeError, ValueError) as error:
             return {"accepted": False, "error": str(error)}
         return {"accepted": True, "session": session_id}
 
     async def _on_abort(self, payload: bytes) -> dict[str, Any]:
-        session_id = self.session.session_id if self.session is not None else None
+        if not self.busy:  # the last session, finished, is not what was aborted
+            return {"aborted": False, "session": None}
+        assert self.session is not None
+        session_id = self.session.session_id
         return {"aborted": await self.abort_session(), "session": session_id}
 
     async def _on_status(self, payload: bytes) -> dict[str, Any]:

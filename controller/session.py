@@ -12,12 +12,19 @@ import asyncio
 import logging
 import time
 from collections.abc import Awaitable, Callable
+from functools import partial
 from typing import Any, TypeVar
 
 import numpy as np
 
 from controller.config import Config
-from controller.motion.planner import MotionPlanner, TouchGeometry, Waypoint
+from controller.motion.planner import (
+    MotionPlanner,
+    TouchGeometry,
+    Waypoint,
+    at_pose,
+    home_pose_world_tcp,
+)
 from controller.motion.safety import Obstacles, SafetyViolation, check_force, check_reachable
 from controller.perception.protocol import (
     Perception,
@@ -28,13 +35,13 @@ from controller.perception.protocol import (
 )
 from controller.recording import SessionRecorder
 from controller.request import ExploreRequest
+from controller.scoring import GroundTruthScores
 from controller.session_times import SessionTimes
 from controller.states import STEP_TIMEOUT_S, TRANSITIONS, State
 from drivers.base import ArmState, DeviceError, TactileFrame
 from drivers.factory import Devices
 from drivers.tool import ToolModel
 from models.geometry import invert_transform, matrix_to_ur_pose, ur_pose_to_matrix
-from models.metrics import mesh_metrics
 
 log = logging.getLogger(__name__)
 
@@ -54,14 +61,6 @@ APPROACH_FINE_FORCE_FRACTION = 0.25
 """Once the force reaches this fraction of ``approach_contact_force_n`` the approach goes on in
 ``APPROACH_FINE_STEP_M`` steps: a corner pressing the gel shows only a fraction of the contact
 force one coarse step before the window behind the gel would reach it (docs/controller.md)."""
-POSSIBLE_OCCUPANCY = 0.1
-"""Voxels above this probability are where the object may be: transits, and the tool parts that
-do not lead into a touch, keep their clearance from them. The vision estimate (v > 0.5) is too
-small in places, so a lower threshold is used (docs/controller.md)."""
-
-
-SCORES = ("chamfer_mm", "fscore_2mm", "fscore_5mm")
-"""Ground-truth scores of every estimate on the simulated bench (``models.metrics``)."""
 
 
 class SessionFault(RuntimeError):
@@ -86,7 +85,10 @@ class ExplorationSession:
         recorder: SessionRecorder,
         publish: Publish,
         publish_shape: Callable[[ShapeEstimate], None] = lambda estimate: None,
+        home_clear_of: Obstacles | None = None,
     ) -> None:
+        """``home_clear_of``: given, the session first takes the arm home clear of these (after
+        a fault or an abort the arm is wherever the interruption left it)."""
         self.session_id = session_id
         self.request = request
         self.config = config
@@ -105,6 +107,8 @@ class ExplorationSession:
             stroke_m=config.gripper.stroke_m,
             object_point_world=config.voxel_grid.object_point_world,
         )
+        self.home_world_tcp = home_pose_world_tcp(config.robot.arm)
+        self.home_clear_of = home_clear_of
         self.state = State.IDLE
         self.touch_count = 0
         self.estimate: ShapeEstimate | None = None
@@ -114,7 +118,7 @@ class ExplorationSession:
         self.error: str | None = None
         self.metrics: dict[str, list[float]] = {}
         """Ground-truth scores after reconstruct and each refine (simulation only)."""
-        self._scoring: list[asyncio.Task[dict[str, float]]] = []
+        self._scores = None if world is None else GroundTruthScores(world, recorder)
         self._frame = None
         self._reference: TactileFrame | None = None
         self._target: TouchTarget | None = None
@@ -124,8 +128,9 @@ class ExplorationSession:
         """Poses the arm passed through to the current approach start (oldest first)."""
         self._unchanged_touches = 0
         self._move_start_world_tcp: np.ndarray | None = None
-        """Where the arm's current (or last, if it failed) motion started: a pose the arm
-        reached without touching anything (for an approach: the approach start)."""
+        """Where the motion under way (or interrupted) started: a pose the arm reached without
+        touching anything. For a touch, the approach start until the retract is back there;
+        None between motions."""
 
     # --- the loop -------------------------------------------------------------------------------
 
@@ -178,7 +183,8 @@ class ExplorationSession:
             # The arm rests at the last approach start, clear of the object: going up above it
             # is a courtesy, and a refused retreat there is no error.
             await self._make_safe(report_failure=False)
-        await self._collect_scores()
+        if self._scores is not None:
+            self.metrics = await self._scores.collect()
         return self.summary()
 
     def _transition(self, state: State, detail: str = "") -> None:
@@ -203,6 +209,8 @@ class ExplorationSession:
 
     async def _capture(self) -> State:
         devices, device = self.devices, self._device
+        if self.home_clear_of is not None:
+            await self._go_home(self.home_clear_of)
         gripper_state = await device(devices.gripper.state())
         if abs(gripper_state.width_m - self.config.motion.touch_width_m) > 1e-4:
             await device(
@@ -215,7 +223,7 @@ class ExplorationSession:
             )
         self._reference = await device(devices.tactile.reference())
         self._frame = await device(devices.camera.read())
-        self.recorder.log_camera(self._frame)
+        await self._record(partial(self.recorder.log_camera, self._frame))
         arm = await device(devices.arm.state())
         pose_world_tcp = self.pose_world_tcp(arm)
         self.recorder.log_robot(
@@ -236,7 +244,7 @@ class ExplorationSession:
         if self._unchanged_touches >= CONVERGED_AFTER_UNCHANGED_TOUCHES:
             log.info("converged: %d touches changed no voxel", self._unchanged_touches)
             return State.DONE
-        obstacles = self._obstacles()
+        obstacles = await self._compute(Obstacles.of_estimate, self.estimate)
         joints = (await self._device(self.devices.arm.state())).joints_rad
 
         def allowed(target: TouchTarget) -> bool:
@@ -263,7 +271,7 @@ class ExplorationSession:
     async def _approach(self) -> State:
         assert self._target is not None and self.estimate is not None
         target = self._target
-        obstacles = self._obstacles()
+        obstacles = await self._compute(Obstacles.of_estimate, self.estimate)
         arm = await self._device(self.devices.arm.state())
         pose_world_tcp = self.pose_world_tcp(arm)
         touch = self.planner.touch_geometry(target.target_world, target.direction_world)
@@ -355,8 +363,10 @@ class ExplorationSession:
             "pad_start_world": self._touch.pad_start_world.tolist(),
             "pose_world_pad": pose_world_pad.tolist(),
         }
-        self.recorder.log_tactile(tactile.image_bgr, outcome.height_map_mm)
-        self.recorder.log_touch(record, _rays(self._touch, outcome))
+        await self._record(
+            partial(self.recorder.log_tactile, tactile.image_bgr, outcome.height_map_mm),
+            partial(self.recorder.log_touch, record, _rays(self._touch, outcome)),
+        )
         self.publish("touch", record)
         return State.REFINE
 
@@ -377,13 +387,19 @@ class ExplorationSession:
 
     # --- motion ---------------------------------------------------------------------------------
 
-    def _obstacles(self) -> Obstacles:
-        """The current estimate as obstacles: occupied, and where the object may be."""
-        assert self.estimate is not None
-        return Obstacles(
-            self.estimate.occupied_points_world(),
-            self.estimate.occupied_points_world(POSSIBLE_OCCUPANCY),
-        )
+    async def _go_home(self, obstacles: Obstacles) -> None:
+        """To the home pose through the planner's checks, then check the arm is there."""
+        arm = await self._device(self.devices.arm.state())
+        home, pose, joints = self.home_world_tcp, self.pose_world_tcp(arm), arm.joints_rad
+        try:
+            plan = await self._compute(self.planner.plan_home, pose, joints, home, obstacles)
+        except SafetyViolation as violation:
+            raise SessionFault(f"cannot go home before the capture: {violation}") from None
+        for waypoint in plan:
+            await self._move(waypoint)
+        pose = self.pose_world_tcp(await self._device(self.devices.arm.state()))
+        if not at_pose(pose, home):
+            raise SessionFault(f"the arm stopped at {np.round(pose[:3, 3], 3)} m, not at home")
 
     def _joints_at(self, touch: TouchGeometry, joints_near: np.ndarray) -> np.ndarray:
         return check_reachable(touch.pose_world_tcp_start, self.pose_world_base, joints_near)
@@ -403,6 +419,8 @@ class ExplorationSession:
                 timeout_s=STEP_TIMEOUT_S[State.APPROACH],
             )
         )
+        if new_motion:
+            self._move_start_world_tcp = None  # arrived: no motion to retreat from
 
     async def _move_until_contact(self, waypoint: Waypoint) -> bool:
         """The slow approach, watching the finger force: the surface may be nearer than the
@@ -433,9 +451,11 @@ class ExplorationSession:
         return False
 
     async def _make_safe(self, *, report_failure: bool = True) -> None:
-        """Stop all motion, pull the pad back, and take the tool back the way it came and up
-        above the object. Errors here are logged, never raised: this runs on faults, and must
-        not hide the first error."""
+        """Stop all motion, pull the pad back, take the tool back to where the interrupted
+        motion started (the way it came; with none interrupted it stays) and up above the
+        object. Only ever to those poses, so repeated faults cannot walk the arm away. Errors
+        here are logged, never raised: this runs on faults, and must not hide the first
+        error."""
         devices = self.devices
         for stop in (devices.arm.stop, devices.gripper.stop):
             try:
@@ -459,9 +479,8 @@ class ExplorationSession:
                 )
             pose_world_tcp = self.pose_world_tcp(arm)
             joints = arm.joints_rad
-            for waypoint in self.planner.plan_retreat(
-                pose_world_tcp, joints, back_to_world_tcp=back_to
-            ):
+            retreat = partial(self.planner.plan_retreat, back_to_world_tcp=back_to)
+            for waypoint in await self._compute(retreat, pose_world_tcp, joints):
                 await self._move(waypoint)
                 pose_world_tcp, joints = waypoint.pose_world_tcp, waypoint.joints_rad
         except (DeviceError, SafetyViolation) as error:
@@ -473,9 +492,10 @@ class ExplorationSession:
             return
         # Back where the motion started, a pose the arm reached without touching anything:
         # safe. Going up above the object is a courtesy a wrong estimate may refuse.
-        obstacles = self._obstacles() if self.estimate is not None else Obstacles.none()
         try:
-            for waypoint in self.planner.plan_lift(pose_world_tcp, joints, obstacles):
+            obstacles = await self._compute(Obstacles.of_estimate, self.estimate)
+            lift = await self._compute(self.planner.plan_lift, pose_world_tcp, joints, obstacles)
+            for waypoint in lift:
                 await self._move(waypoint)
         except (DeviceError, SafetyViolation) as error:
             log.warning("stayed where the interrupted motion started: %s", error)
@@ -504,39 +524,28 @@ class ExplorationSession:
         finally:
             self.times.motion_s += time.perf_counter() - start
 
+    async def _record(self, *calls: Callable[[], object]) -> None:
+        """Record or publish in a worker thread, in order: Rerun's conversion of images and
+        points, the recording's flush at each touch and the shape's encoding take up to tens of
+        milliseconds. The work runs to its end even when the step is cancelled, so a touch is
+        recorded whole and the recorder is not closed under it."""
+        work = asyncio.ensure_future(asyncio.to_thread(lambda: [call() for call in calls]))
+        try:
+            await asyncio.shield(work)
+        except asyncio.CancelledError:
+            await work
+            raise
+
     async def _record_shape(self) -> None:
-        assert self.estimate is not None
-        if self.estimate.sketches:
-            self.recorder.log_sketches(self.estimate.sketches)
-        self.recorder.log_shape(self.estimate.probabilities, self.estimate.grid)
-        self.publish_shape(self.estimate)
-        world = self.devices.world
-        if world is not None:
-            # Only a simulation knows the true shape: score every estimate against it, in the
-            # background (it is no work a real robot would wait for); collected at the end.
-            self._scoring.append(
-                asyncio.create_task(
-                    self._score(self.estimate, world.object_mesh_world, self.touch_count)
-                )
-            )
-
-    async def _score(self, estimate: ShapeEstimate, mesh: Any, touch: int) -> dict[str, float]:
-        scores = await asyncio.to_thread(mesh_metrics, estimate.probabilities, estimate.grid, mesh)
-        values = {name: float(getattr(scores, name)) for name in SCORES}
-        for name, value in values.items():
-            self.recorder.log_metric(name, value, touch=touch)
-        return values
-
-    async def _collect_scores(self) -> None:
-        """Wait for the background scores and list them in estimate order."""
-        results = await asyncio.gather(*self._scoring, return_exceptions=True)
-        self._scoring.clear()
-        for result in results:
-            if isinstance(result, BaseException):
-                log.error("scoring an estimate failed: %r", result)
-                continue
-            for name, value in result.items():
-                self.metrics.setdefault(name, []).append(round(value, 3))
+        estimate = self.estimate
+        assert estimate is not None
+        await self._record(
+            partial(self.recorder.log_sketches, estimate.sketches),  # none: nothing logged
+            partial(self.recorder.log_shape, estimate.probabilities, estimate.grid),
+            partial(self.publish_shape, estimate),
+        )
+        if self._scores is not None:
+            self._scores.add(estimate, self.touch_count)
 
     def finish(self) -> None:
         """Back to idle once the service has saved the session's artifacts."""

@@ -47,6 +47,7 @@ async def capture_snapshot(
         camera=config.cameras.rgbd,
         sim=sim,
         rng=np.random.default_rng(sim.seed),
+        max_object_extent_m=config.voxel_grid.extent_m,
     )
     await devices.connect()
     try:

@@ -20,6 +20,36 @@ Vec3 = tuple[float, float, float]
 Vec6 = tuple[float, float, float, float, float, float]
 
 
+class FieldError(ValueError):
+    """A bad value of one field of a config section. The validator
+    (``controller.config.build_dataclass``) prefixes the section, so the error names the dotted
+    key (``limits.max_force_n must be positive``)."""
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(f"{field} {message}")
+        self.field = field
+        self.message = message
+
+
+def require_positive(section: object, *names: str) -> None:
+    """Raise ``FieldError`` for the first named field (number or vector) not finite and above 0
+    (written so that NaN fails too: every comparison with NaN is false)."""
+    for name in names:
+        value = getattr(section, name)
+        values = value if isinstance(value, tuple) else (value,)
+        if not all(math.isfinite(v) and v > 0 for v in values):
+            raise FieldError(name, f"must be positive and finite, got {value}")
+
+
+def require_finite(section: object, *names: str) -> None:
+    """Raise ``FieldError`` for the first named field (number or vector) holding NaN or inf."""
+    for name in names:
+        value = getattr(section, name)
+        values = value if isinstance(value, tuple) else (value,)
+        if not all(math.isfinite(v) for v in values):
+            raise FieldError(name, f"must be finite, got {value}")
+
+
 @dataclass(frozen=True)
 class ArmConfig:
     type: Literal["sim", "ur_rtde"] = "sim"
@@ -48,20 +78,19 @@ class ArmConfig:
     """ur_rtde: no fresh RTDE state for this long means the link is lost (then it reconnects)."""
 
     def __post_init__(self) -> None:
-        if self.max_joint_speed_rad_s <= 0 or self.control_frequency_hz <= 0:
-            raise ValueError("max_joint_speed_rad_s and control_frequency_hz must be positive")
-        limits = (
-            self.max_tool_speed_m_s,
-            self.max_tool_acceleration_m_s2,
-            self.max_joint_acceleration_rad_s2,
-            self.connect_timeout_s,
-            self.watchdog_timeout_s,
+        require_finite(self, "pose_world_base", "tcp_offset", "home_joints_rad")
+        require_positive(
+            self,
+            "max_joint_speed_rad_s",
+            "control_frequency_hz",
+            "max_tool_speed_m_s",
+            "max_tool_acceleration_m_s2",
+            "max_joint_acceleration_rad_s2",
+            "connect_timeout_s",
+            "watchdog_timeout_s",
         )
-        if min(limits) <= 0 or self.connect_attempts < 1:
-            raise ValueError(
-                "arm speed, acceleration and timeout limits must be positive,"
-                " connect_attempts at least 1"
-            )
+        if self.connect_attempts < 1:
+            raise FieldError("connect_attempts", f"must be at least 1, got {self.connect_attempts}")
 
 
 @dataclass(frozen=True)
@@ -92,17 +121,29 @@ class GripperConfig:
 
     def __post_init__(self) -> None:
         if not 0 < self.stroke_m <= 0.2:
-            raise ValueError("stroke_m must be in (0, 0.2]")
-        if min(self.body_size_m) <= 0 or min(self.finger_size_m) <= 0:
-            raise ValueError("body_size_m and finger_size_m must be positive")
-        if min(self.timeout_s, self.connect_timeout_s, self.max_state_age_s) <= 0:
-            raise ValueError("timeout_s, connect_timeout_s and max_state_age_s must be positive")
+            raise FieldError("stroke_m", f"must be in (0, 0.2], got {self.stroke_m}")
+        require_positive(
+            self,
+            "body_size_m",
+            "finger_size_m",
+            "max_speed_m_s",
+            "max_force_n",
+            "timeout_s",
+            "connect_timeout_s",
+            "max_state_age_s",
+        )
         if not 5 <= self.state_update_period_ms <= 1000:
-            raise ValueError("state_update_period_ms must be in [5, 1000]")
+            raise FieldError(
+                "state_update_period_ms", f"must be in [5, 1000], got {self.state_update_period_ms}"
+            )
         if self.max_state_age_s * 1e3 < 2 * self.state_update_period_ms:
-            raise ValueError("max_state_age_s must cover at least two state update periods")
-        if self.baudrate <= 0 or not 0 < self.tcp_port < 65536:
-            raise ValueError("baudrate must be positive and tcp_port in 1..65535")
+            raise FieldError(
+                "max_state_age_s", "must cover at least two state_update_period_ms periods"
+            )
+        if self.baudrate <= 0:
+            raise FieldError("baudrate", f"must be positive, got {self.baudrate}")
+        if not 0 < self.tcp_port < 65536:
+            raise FieldError("tcp_port", f"must be in 1..65535, got {self.tcp_port}")
 
 
 @dataclass(frozen=True)
@@ -146,24 +187,37 @@ class SensorConfig:
     """Camera: opening the device and getting its first frame."""
 
     def __post_init__(self) -> None:
-        if self.pad_width_mm <= 0 or self.pad_height_mm <= 0:
-            raise ValueError("pad size must be positive")
-        if min(self.image_width_px, self.image_height_px) <= 0 or self.frame_rate_hz <= 0:
-            raise ValueError("image size and frame_rate_hz must be positive")
+        require_positive(
+            self,
+            "pad_width_mm",
+            "pad_height_mm",
+            "image_width_px",
+            "image_height_px",
+            "frame_rate_hz",
+            "housing_thickness_m",
+            "housing_length_m",
+            "pad_centre_from_tip_m",
+            "gel_thickness_mm",
+            "youngs_modulus_mpa",
+            "max_frame_age_s",
+            "open_timeout_s",
+        )
+        if not (math.isfinite(self.image_noise_sigma) and self.image_noise_sigma >= 0):
+            raise FieldError("image_noise_sigma", f"must be >= 0, got {self.image_noise_sigma}")
         x, y, width, height = self.crop_px
         if min(x, y, width, height) < 0 or (width == 0) != (height == 0):
-            raise ValueError(
-                "crop_px is (x, y, width, height) >= 0; width and height both 0 or not"
+            raise FieldError(
+                "crop_px", "is (x, y, width, height) >= 0; width and height both 0 or not"
             )
         if self.reference_frame_count < 1:
-            raise ValueError("reference_frame_count must be >= 1")
-        if self.max_frame_age_s <= 0 or self.open_timeout_s <= 0:
-            raise ValueError("max_frame_age_s and open_timeout_s must be positive")
+            raise FieldError(
+                "reference_frame_count", f"must be >= 1, got {self.reference_frame_count}"
+            )
         if not 0 < self.max_indentation_mm < self.gel_thickness_mm:
-            raise ValueError("max_indentation_mm must be in (0, gel_thickness_mm)")
+            raise FieldError("max_indentation_mm", "must be in (0, gel_thickness_mm)")
         if not self.max_indentation_mm * 1e-3 < self.housing_recess_m < self.housing_thickness_m:
-            raise ValueError(
-                "housing_recess_m must lie between max_indentation_mm and housing_thickness_m"
+            raise FieldError(
+                "housing_recess_m", "must lie between max_indentation_mm and housing_thickness_m"
             )
 
 
@@ -197,13 +251,13 @@ class CameraConfig:
 
     def __post_init__(self) -> None:
         if not 0.0 < self.tilt_deg < 90.0:
-            raise ValueError("tilt_deg must be in (0, 90)")
+            raise FieldError("tilt_deg", f"must be in (0, 90), got {self.tilt_deg}")
         if not 0.05 <= self.colour_scale <= 1.0:
-            raise ValueError("colour_scale must be in [0.05, 1]")
-        if self.height_m <= 0 or self.horizontal_distance_m <= 0:
-            raise ValueError("height_m and horizontal_distance_m must be positive")
-        if self.max_frame_age_s <= 0 or self.open_timeout_s <= 0:
-            raise ValueError("max_frame_age_s and open_timeout_s must be positive")
+            raise FieldError("colour_scale", f"must be in [0.05, 1], got {self.colour_scale}")
+        require_positive(
+            self, "height_m", "horizontal_distance_m", "max_frame_age_s", "open_timeout_s"
+        )
+        require_finite(self, "yaw_deg")
 
     def pose_world_camera(self) -> NDArray[np.float64]:
         """Camera pose (OpenCV axes) in the world, from height, tilt, distance and yaw."""
@@ -232,7 +286,7 @@ class SimConfig:
     object_albedo_rgb: Vec3 = (0.75, 0.35, 0.25)
 
     def __post_init__(self) -> None:
-        if self.real_time_factor < 0:
-            raise ValueError("real_time_factor must be >= 0")
-        if self.object_scale <= 0:
-            raise ValueError("object_scale must be positive")
+        if not (math.isfinite(self.real_time_factor) and self.real_time_factor >= 0):
+            raise FieldError("real_time_factor", f"must be >= 0, got {self.real_time_factor}")
+        require_positive(self, "object_scale", "table_size_m")
+        require_finite(self, "object_yaw_deg", "object_albedo_rgb")

@@ -1,4 +1,5 @@
-"""Build the four devices from their configs; simulated ones share one SimWorld."""
+"""Build the four devices from their configs; simulated ones share one SimWorld, which exists
+only when some device is simulated (a real robot's session has no ground truth to score)."""
 
 from __future__ import annotations
 
@@ -9,9 +10,9 @@ import numpy as np
 
 from drivers.base import Arm, Gripper, RGBDCamera, TactileSensor
 from drivers.config import ArmConfig, CameraConfig, GripperConfig, SensorConfig, SimConfig
-from drivers.sim.world import SimWorld
 
 if TYPE_CHECKING:
+    from drivers.sim.world import SimWorld
     from models.tactile.sim import GelSightSimulator
 
 
@@ -22,7 +23,8 @@ class Devices:
     arm: Arm
     gripper: Gripper
     world: SimWorld | None
-    """The simulated world when any device is simulated (ground truth for tests and benches)."""
+    """The simulated world when any device is simulated (ground truth for tests and benches);
+    None when every device is real."""
 
     @property
     def all(self) -> tuple[RGBDCamera, TactileSensor, Arm, Gripper]:
@@ -53,14 +55,24 @@ def make_devices(
     camera: CameraConfig,
     sim: SimConfig,
     rng: np.random.Generator,
+    max_object_extent_m: float | None = None,
 ) -> Devices:
-    """Devices for a config; nothing is connected yet."""
-    # Imported here so a real-robot install never loads the simulation's heavy pieces.
-    from drivers.sim.gelsight import gel_pad_spec
-    from models.tactile.sim import GelSightSimulator
+    """Devices for a config; nothing is connected yet. The sim world (and the simulated gel,
+    when the gripper or the GelSight is simulated) is built only for simulated devices; its
+    object is refused (ShapeError) when larger than ``max_object_extent_m`` on a side."""
+    world, gel = None, None
+    if "sim" in (arm.type, gripper.type, sensor.type, camera.type):
+        # Imported here so a real-robot install never loads the simulation's heavy pieces.
+        from drivers.sim.world import SimWorld
 
-    world = SimWorld.from_config(sim, arm, gripper, sensor)
-    gel = GelSightSimulator(gel_pad_spec(sensor))
+        world = SimWorld.from_config(
+            sim, arm, gripper, sensor, max_object_extent_m=max_object_extent_m
+        )
+    if "sim" in (gripper.type, sensor.type):
+        from drivers.sim.gelsight import gel_pad_spec
+        from models.tactile.sim import GelSightSimulator
+
+        gel = GelSightSimulator(gel_pad_spec(sensor))
     return Devices(
         camera=_make_camera(camera, world, rng),
         tactile=_make_tactile(sensor, world, gel, rng),
@@ -70,32 +82,44 @@ def make_devices(
     )
 
 
-def _make_arm(config: ArmConfig, world: SimWorld) -> Arm:
+def _simulated(world: SimWorld | None) -> SimWorld:
+    if world is None:
+        raise ValueError("a simulated device needs the sim world")
+    return world
+
+
+def _make_arm(config: ArmConfig, world: SimWorld | None) -> Arm:
     if config.type == "ur_rtde":
         from drivers.ur5.rtde_arm import URRtdeArm
 
         return URRtdeArm(config)
     from drivers.sim.arm import SimUR5
 
-    return SimUR5(world, config)
+    return SimUR5(_simulated(world), config)
 
 
 # Real backends import their vendor SDK when built, so a missing optional extra only matters
 # for the device that needs it.
 
 
-def _make_gripper(config: GripperConfig, world: SimWorld, gel: GelSightSimulator) -> Gripper:
+def _make_gripper(
+    config: GripperConfig, world: SimWorld | None, gel: GelSightSimulator | None
+) -> Gripper:
     if config.type in ("wsg50_serial", "wsg50_tcp"):
         from drivers.wsg50.gripper import WSG50Gripper
 
         return WSG50Gripper(config)
     from drivers.sim.gripper import SimWSG50
 
-    return SimWSG50(world, config, gel)
+    assert gel is not None
+    return SimWSG50(_simulated(world), config, gel)
 
 
 def _make_tactile(
-    config: SensorConfig, world: SimWorld, gel: GelSightSimulator, rng: np.random.Generator
+    config: SensorConfig,
+    world: SimWorld | None,
+    gel: GelSightSimulator | None,
+    rng: np.random.Generator,
 ) -> TactileSensor:
     if config.type == "opencv":
         from drivers.gelsight_camera import GelSightCamera
@@ -103,10 +127,13 @@ def _make_tactile(
         return GelSightCamera(config)
     from drivers.sim.gelsight import SimGelSight
 
-    return SimGelSight(world, gel, rng)
+    assert gel is not None
+    return SimGelSight(_simulated(world), gel, rng)
 
 
-def _make_camera(config: CameraConfig, world: SimWorld, rng: np.random.Generator) -> RGBDCamera:
+def _make_camera(
+    config: CameraConfig, world: SimWorld | None, rng: np.random.Generator
+) -> RGBDCamera:
     if config.type == "kinect_v2":
         from drivers.rgbd.kinect_v2 import KinectV2Camera
 
@@ -117,4 +144,4 @@ def _make_camera(config: CameraConfig, world: SimWorld, rng: np.random.Generator
         return RealSenseCamera(config)
     from drivers.sim.camera import SimKinect
 
-    return SimKinect(world, config, rng)
+    return SimKinect(_simulated(world), config, rng)

@@ -20,6 +20,7 @@ import trimesh
 from manifold3d import CrossSection, Manifold
 
 from models import solids
+from models.procedural import ALL_CATEGORIES
 from models.shapes import ShapeError, place_on_table
 
 SIZE_RANGE_M = (0.03, 0.30)
@@ -178,6 +179,10 @@ FAMILIES: tuple[str, ...] = tuple(_FAMILIES)
 
 HELD_OUT_FAMILIES: tuple[str, ...] = ("extruded", "fruit")
 """Families never trained on: evaluation measures how the priors generalise to them."""
+
+SHAPE_GROUPS: tuple[str, ...] = (*ALL_CATEGORIES, *FAMILIES)
+"""Everything generated shapes are drawn from: the 14 categories, the box family, the families.
+A group's index here seeds its shapes, so new groups are only ever appended."""
 
 
 def make_family_shape(family: str, rng: np.random.Generator) -> trimesh.Trimesh:

@@ -8,6 +8,7 @@ bounding box in x, y is at (0, 0) ("bottom centre at the origin"). Procedural sh
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -18,11 +19,14 @@ from models.geometry import VoxelGrid
 __all__ = [
     "MESH_SUFFIXES",
     "ShapeError",
+    "check_explorable",
     "fits_extent",
     "load_mesh_file",
     "place_on_table",
     "voxelize",
 ]
+
+log = logging.getLogger(__name__)
 
 MESH_SUFFIXES: tuple[str, ...] = (".obj", ".stl", ".ply", ".glb", ".gltf", ".off")
 """File suffixes :func:`load_mesh_file` accepts (case-insensitive)."""
@@ -68,11 +72,13 @@ def load_mesh_file(
     (``scale`` must then be left at 1). Finally it is placed bottom centre at the origin.
 
     Meshes that are not watertight are accepted: holes are filled and winding made consistent
-    where trimesh can, otherwise the mesh is returned as it is.
+    where trimesh can (``mesh.metadata["repaired"]`` then says what was done), otherwise the
+    mesh is returned as it is (:func:`check_explorable` refuses it for the bench).
 
     Raises:
-        ShapeError: the file is missing, has an unsupported suffix, cannot be parsed, or
-            contains no triangles.
+        ShapeError: the file is missing, has an unsupported suffix, cannot be parsed (the
+            message says why, e.g. a header that does not match the data), or contains no
+            triangles.
         ValueError: bad ``up_axis``, ``scale`` or ``fit_max_extent_m``.
     """
     path = Path(path)
@@ -98,9 +104,9 @@ def load_mesh_file(
         # hold point clouds or paths).
         mesh = trimesh.load_scene(path).to_mesh()
     except Exception as exc:  # trimesh's parsers raise many unrelated types on corrupt input
-        raise ShapeError(f"cannot read mesh file {path}: {exc!r}") from exc
+        raise ShapeError(f"cannot read mesh file {path}: {_read_failure(exc)}") from exc
     if len(mesh.faces) == 0:
-        raise ShapeError(f"mesh file {path} contains no triangles")
+        raise ShapeError(f"mesh file {path} contains no triangles (empty, truncated or corrupt)")
     if not np.isfinite(mesh.vertices).all():
         raise ShapeError(f"mesh file {path} has non-finite vertex coordinates")
 
@@ -108,8 +114,12 @@ def load_mesh_file(
     # vertices split along UV / normal seams, which would look like holes.
     mesh.merge_vertices(merge_tex=True, merge_norm=True)
     if not mesh.is_volume:
+        was_watertight = mesh.is_watertight
         trimesh.repair.fill_holes(mesh)
         trimesh.repair.fix_normals(mesh)
+        mesh.metadata["repaired"] = (
+            "its faces were turned consistently" if was_watertight else "its holes were filled"
+        )
 
     transform = np.eye(4)
     transform[:3, :3] = rotation
@@ -121,6 +131,50 @@ def load_mesh_file(
         scale = fit_max_extent_m / largest
     mesh.apply_scale(scale)
     return place_on_table(mesh)
+
+
+def _read_failure(error: Exception) -> str:
+    """Why a parser failed, in words: a missing key means the header promised a field (e.g. a
+    PLY vertex property 'x') that the data does not have."""
+    if isinstance(error, KeyError):
+        return f"the header does not match the data (no field {error.args[0]!r})"
+    reason = " ".join(str(error).split()) or "no reason given"
+    return f"{type(error).__name__}: {reason}"
+
+
+def check_explorable(
+    mesh: trimesh.Trimesh,
+    source: str,
+    *,
+    min_extent_m: float,
+    max_extent_m: float | None = None,
+) -> None:
+    """Refuse an object the bench cannot explore, with one line naming ``source`` (the file or
+    category) and the reason: larger than ``max_extent_m`` on any side (the volume the shape
+    is perceived in), with a largest side under ``min_extent_m`` (too small to touch), or not
+    a closed solid (its inside is undefined: the gel, the voxels and the scores need one).
+    A mesh whose holes :func:`load_mesh_file` filled is accepted with a warning."""
+    extents = mesh.extents
+    size_m = " x ".join(f"{e:.3f}" for e in extents)
+    if max_extent_m is not None and extents.max() > max_extent_m:
+        raise ShapeError(
+            f"object {source} is too large for the workspace: {size_m} m, at most "
+            f"{max_extent_m:.3f} m on each side fits"
+        )
+    if extents.max() < min_extent_m:
+        size_mm = " x ".join(f"{e * 1e3:.3g}" for e in extents)
+        raise ShapeError(
+            f"object {source} is too small to touch: {size_mm} mm, its largest side must be "
+            f"at least {min_extent_m * 1e3:.0f} mm"
+        )
+    if not mesh.is_volume:
+        open_edges = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
+        raise ShapeError(
+            f"object {source} is not a closed solid ({open_edges} open edges) and its holes "
+            "could not be filled"
+        )
+    if mesh.metadata.get("repaired"):
+        log.warning("object %s was not a closed solid: %s", source, mesh.metadata["repaired"])
 
 
 def fits_extent(

@@ -32,7 +32,6 @@ from models.prior.evaluation import EvalObject
 from models.prior.shape_prior import ShapePrior
 from models.shapes import fits_extent, load_mesh_file, voxelize
 from models.tactile.lut import GelSightLUT
-from models.touch.constraints import VoxelConstraints
 from models.touch.policy import oracle_select
 from models.touch.refinement import TouchLossKind, touch_loss
 
@@ -144,11 +143,12 @@ class ObjectRun:
         )
         self.bench = SimTouchBench(config, self.mesh_world, _seed(settings.seed, self.key))
         perception = self.perception(_seed(settings.seed, self.key))
-        self.grid = perception.grid
-        self.truth = voxelize(self.mesh_world, self.grid).astype(np.float32)
         self.metric_seed = _seed(settings.seed, self.key, 7)
         frame = self.bench.frame()
         self.vision = perception.reconstruct(frame, self.request("active", "prior"))
+        # The estimate's grid: registered, or fitted to the object by an object-frame prior.
+        self.grid = self.vision.grid
+        self.truth = voxelize(self.mesh_world, self.grid).astype(np.float32)
         self.vision_metrics = self.metrics(self.vision)
 
     def perception(self, seed: int) -> LearnedPerception:
@@ -196,9 +196,7 @@ class ObjectRun:
         outcome = perception.interpret(measurement)
         refine = Stopwatch()
         refined = refine(perception.refine, estimate, [*outcomes, outcome], request)
-        constraints = VoxelConstraints.none(self.grid.resolution)
-        for touched in (*outcomes, outcome):
-            constraints = constraints.merged(touched.constraints)
+        constraints = perception.constraints([*outcomes, outcome], self.grid)
         loss = tuple(
             float(
                 touch_loss(

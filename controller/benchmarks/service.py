@@ -7,7 +7,10 @@
   the simulated time the devices took (arm and finger motions, camera and GelSight reads);
 - memory growth: resident set size after each of N sessions in one service process (after a
   garbage collection, and after returning freed heap pages to the system: what stays is what
-  the process holds).
+  the process holds);
+- status latency during a session: a client in another process polls ``status`` at a fixed
+  rate over Zenoh while one session runs; the reply times, and the event loop's lag from the
+  in-process monitor (``controller.loop_monitor``).
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import ctypes
 import dataclasses
 import gc
 import json
+import os
 import socket
 import statistics
 import threading
@@ -27,7 +31,10 @@ from typing import Any
 
 import zenoh
 
+from controller.benchmarks.status_poller import StatusPoller
+from controller.benchmarks.timing import machine
 from controller.config import Config, MessagingConfig
+from controller.loop_monitor import LoopLagMonitor, percentile
 from controller.messaging import zenoh_config
 from controller.request import ExploreRequest
 from controller.service import PerceptionFactory, TouchshapeService
@@ -103,6 +110,64 @@ async def _trigger_to_capture(
     return latencies
 
 
+async def status_during_session(
+    config: Config, factory: PerceptionFactory, logs_dir: Path, *, hz: float, touches: int
+) -> dict[str, Any]:
+    """Serve on a loopback port, poll ``status`` at ``hz`` over Zenoh from another process
+    while one explore request (sent from this one) runs, and measure the loop's lag in the
+    service meanwhile."""
+    port = _free_port()
+    served = dataclasses.replace(
+        config, messaging=MessagingConfig(listen=(f"tcp/127.0.0.1:{port}",))
+    )
+    service = TouchshapeService(served, factory, logs_dir=logs_dir)
+    stop, ready = asyncio.Event(), asyncio.Event()
+    task = asyncio.create_task(service.serve(stop, ready))
+    await asyncio.wait_for(ready.wait(), 120)
+    endpoint = f"tcp/127.0.0.1:{port}"
+    prefix = f"touchshape/{config.robot.id}"
+    client = await asyncio.to_thread(
+        zenoh.open, zenoh_config(MessagingConfig(listen=(), connect=(endpoint,)))
+    )
+    poller = StatusPoller(endpoint, f"{prefix}/status", hz)
+    load_before = os.getloadavg()
+    try:
+        await asyncio.to_thread(poller.start)
+        async with LoopLagMonitor() as monitor:
+            try:
+                body = json.dumps({"max_touches": touches})
+                await asyncio.to_thread(
+                    lambda: list(client.get(f"{prefix}/explore", payload=body, timeout=5.0))
+                )
+                summary = await service.wait_session()
+            finally:
+                round_trips = await asyncio.to_thread(poller.stop)
+    finally:
+        await asyncio.to_thread(client.close)
+        stop.set()
+        await task
+    if summary is None:
+        raise RuntimeError("the explore request was not accepted: no session ran")
+    replies = [ms for ms in round_trips if ms is not None]
+    return {
+        "hz": hz,
+        "polls": len(round_trips),
+        "unanswered": len(round_trips) - len(replies),
+        "reply_ms": {
+            "p50": round(percentile(replies, 50), 2),
+            "p99": round(percentile(replies, 99), 2),
+            "max": round(max(replies, default=0.0), 2),
+            "over_100ms": sum(ms > 100.0 for ms in replies),
+        },
+        "loop_lag": monitor.summary(),
+        "session": {key: summary[key] for key in ("state", "touches", "error")},
+        "machine": machine(
+            load_average_before=[round(load, 2) for load in load_before],
+            load_average_after=[round(load, 2) for load in os.getloadavg()],
+        ),
+    }
+
+
 async def _sessions(
     config: Config, factory: PerceptionFactory, logs_dir: Path, count: int, touches: int
 ) -> list[dict[str, Any]]:
@@ -150,10 +215,17 @@ def benchmark_service(
     trials: int = 5,
     sessions: int = 20,
     touches: int = 3,
+    status_hz: float = 50.0,
 ) -> dict[str, Any]:
-    """All three figures; sessions run on the simulated bench (rtf 1 for the timing session,
-    rtf 0 for the memory series so it finishes in minutes)."""
+    """All four figures (status latency unless ``status_hz`` is 0); sessions run on the
+    simulated bench (rtf 1 for the timing session; the config's, 0 by default, for the status
+    and memory sessions, so they finish in minutes)."""
     latencies = asyncio.run(_trigger_to_capture(config, factory, logs_dir, trials))
+    status = None
+    if status_hz > 0:
+        status = asyncio.run(
+            status_during_session(config, factory, logs_dir, hz=status_hz, touches=touches)
+        )
     real_time = dataclasses.replace(
         config, sim=dataclasses.replace(config.sim, real_time_factor=1.0)
     )
@@ -167,6 +239,7 @@ def benchmark_service(
             "max": round(max(latencies), 2),
             "trials": trials,
         },
+        **({"status_during_session": status} if status is not None else {}),
         "real_time_session": _real_time_figures(timed),
         "memory": {
             "sessions": sessions,

@@ -70,11 +70,21 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
 
     service = commands.add_parser(
         "service",
-        help="trigger-to-capture latency, compute vs motion time, memory over sessions",
+        help="trigger-to-capture latency, status latency and loop lag during a session,"
+        " compute vs motion time, memory over sessions",
+        epilog="example: touchshape bench service --status-hz 50 --sessions 20 --touches 3"
+        " --json logs/bench_service.json",
     )
     service.add_argument("--config", type=Path, default=None, help="TOML config file")
     service.add_argument("--sessions", type=int, default=20, help="sessions in the memory series")
     service.add_argument("--touches", type=int, default=3, help="touches per session")
+    service.add_argument(
+        "--status-hz",
+        type=float,
+        default=50.0,
+        help="poll status at this rate over Zenoh during one session: reply times and the"
+        " event loop's lag (0: skip)",
+    )
     service.add_argument("--json", type=Path, default=None, help="also write the JSON here")
     service.set_defaults(handler=bench_service)
 
@@ -180,7 +190,12 @@ def bench_service(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     with tempfile.TemporaryDirectory(prefix="touchshape-bench-") as logs:
         result = benchmark_service(
-            config, make_perception, Path(logs), sessions=args.sessions, touches=args.touches
+            config,
+            make_perception,
+            Path(logs),
+            sessions=args.sessions,
+            touches=args.touches,
+            status_hz=args.status_hz,
         )
     print_json(result, args.json)
     return 0

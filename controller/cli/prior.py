@@ -18,7 +18,7 @@ if TYPE_CHECKING:
 
 def add_commands(groups: argparse._SubParsersAction) -> None:
     """Add the `data build`, `train sketch|shape|calibrate` and `eval prior` commands."""
-    from models.prior.dataset import SHAPE_GROUPS
+    from models.families import SHAPE_GROUPS
     from models.procedural import CATEGORIES
 
     data = groups.add_parser("data", help="training data for the shape priors")

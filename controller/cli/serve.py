@@ -8,7 +8,11 @@ import dataclasses
 import signal
 from pathlib import Path
 
-from controller.config import Config, load_config
+from controller.config import Config, ConfigError, load_config
+from controller.messaging import open_session
+from drivers.config import FieldError
+
+OPTIONS = {"listen": "--listen", "connect": "--connect", "id": "--robot-id"}
 
 
 def add_commands(groups: argparse._SubParsersAction) -> None:
@@ -29,21 +33,27 @@ def _service_config(args: argparse.Namespace) -> Config:
     """The config with the endpoints and robot id the arguments give."""
     config = load_config(args.config)
     messaging = config.messaging
-    if args.listen:
-        messaging = dataclasses.replace(messaging, listen=tuple(args.listen))
-    if args.connect:
-        messaging = dataclasses.replace(messaging, connect=tuple(args.connect))
     robot = config.robot
-    if args.robot_id:
-        robot = dataclasses.replace(robot, id=args.robot_id)
+    try:
+        if args.listen:
+            messaging = dataclasses.replace(messaging, listen=tuple(args.listen))
+        if args.connect:
+            messaging = dataclasses.replace(messaging, connect=tuple(args.connect))
+        if args.robot_id:
+            robot = dataclasses.replace(robot, id=args.robot_id)
+    except FieldError as error:
+        raise ConfigError(f"{OPTIONS[error.field]}: {error.message}") from None
     return dataclasses.replace(config, messaging=messaging, robot=robot)
 
 
 def _serve(args: argparse.Namespace) -> int:
+    config = _service_config(args)
+    # Bind before the slow imports (torch) and before any device connects: a taken port or a
+    # bad endpoint is one line (EndpointError), rc 2, within a second or two.
+    session = open_session(config.messaging)
+
     from controller.perception.learned import make_perception
     from controller.service import TouchshapeService
-
-    config = _service_config(args)
 
     async def run() -> None:
         stop = asyncio.Event()
@@ -52,7 +62,7 @@ def _serve(args: argparse.Namespace) -> int:
             loop.add_signal_handler(sig, stop.set)
         service = TouchshapeService(config, make_perception)
         ready = asyncio.Event()
-        serving = asyncio.create_task(service.serve(stop, ready))
+        serving = asyncio.create_task(service.serve(stop, ready, session))
         await asyncio.wait(
             {serving, asyncio.create_task(ready.wait())}, return_when=asyncio.FIRST_COMPLETED
         )

@@ -26,13 +26,16 @@ from controller.motion.safety import (
     check_reachable,
     check_speed,
 )
+from drivers.config import ArmConfig
 from drivers.tool import ToolModel
+from drivers.ur5.kinematics import forward_kinematics
 from models.geometry import (
     frame_from_z_axis,
     invert_transform,
     make_transform,
     radial_angle_about_vertical,
     rotation_angle_between,
+    ur_pose_to_matrix,
 )
 
 FloatArray = NDArray[np.float64]
@@ -55,6 +58,10 @@ PURE_TURN_M = 0.001
 """A line moving the TCP less than this is timed by its rotation."""
 DETOUR_BACK_OFFS_M = (0.0, 0.05, 0.1)
 """How much further back along the approach line a detour may come down before moving in."""
+AT_POSE_TOLERANCE_M = 0.001
+AT_POSE_TOLERANCE_RAD = 0.01
+"""The arm counts as at a pose (home) this near it: well above the arm's repeatability, well
+below anything that changes what the camera sees or where a path starts."""
 MAX_LINE_ROTATION_RAD = np.pi / 2
 """Detours turn the tool at most this much per straight line: a half-turn has no unique
 shortest rotation, so the planner and the arm could interpolate it differently."""
@@ -352,15 +359,13 @@ class MotionPlanner:
         pose_world_tcp: FloatArray,
         joints_rad: FloatArray,
         *,
-        back_to_world_tcp: FloatArray | None = None,
+        back_to_world_tcp: FloatArray | None,
     ) -> list[Waypoint]:
         """Where the arm goes after a fault, an abort or at the end of a session: back to where
-        the interrupted motion started (the way it came, known to be clear) or, without one,
-        back along the tool's -x (away from what the pad faces). Then ``plan_lift``."""
-        if back_to_world_tcp is None:
-            back_to_world_tcp = pose_world_tcp.copy()
-            back_to_world_tcp[:3, 3] -= self.motion.approach_distance_m * pose_world_tcp[:3, 0]
-        if np.allclose(back_to_world_tcp, pose_world_tcp):
+        the interrupted motion started (the way it came, known to be clear) or, with no motion
+        interrupted (None), nowhere: the arm stays. Never to a pose relative to where the arm
+        is, so repeated faults cannot walk it away step by step. Then ``plan_lift``."""
+        if back_to_world_tcp is None or np.allclose(back_to_world_tcp, pose_world_tcp):
             return []
         # Retracing: the shape estimate may be wrong right here, the table is not.
         return [
@@ -373,6 +378,19 @@ class MotionPlanner:
                 label="retreat",
             )
         ]
+
+    def plan_home(
+        self,
+        pose_world_tcp: FloatArray,
+        joints_rad: FloatArray,
+        home_world_tcp: FloatArray,
+        obstacles: Obstacles,
+    ) -> list[Waypoint]:
+        """To the home pose (none when the arm is there): up to the safe height above
+        ``obstacles``, across and down, as a detour between touches goes."""
+        if at_pose(pose_world_tcp, home_world_tcp):
+            return []
+        return self.plan_detour(pose_world_tcp, joints_rad, home_world_tcp, obstacles)
 
     def plan_lift(
         self, pose_world_tcp: FloatArray, joints_rad: FloatArray, obstacles: Obstacles
@@ -509,6 +527,20 @@ class MotionPlanner:
             for box in self.tool.rigid_boxes(self.motion.touch_width_m)
         )
         return top_m + self.motion.safe_height_margin_m - lowest_below_flange
+
+
+def home_pose_world_tcp(arm: ArmConfig) -> FloatArray:
+    """The TCP pose (world frame) at the arm's configured home joints."""
+    joints = np.asarray(arm.home_joints_rad, dtype=float)
+    pose_base_tcp = forward_kinematics(joints) @ ur_pose_to_matrix(arm.tcp_offset)
+    return ur_pose_to_matrix(arm.pose_world_base) @ pose_base_tcp
+
+
+def at_pose(pose_world_tcp: FloatArray, goal_world_tcp: FloatArray) -> bool:
+    """Whether a flange pose is at a goal within ``AT_POSE_TOLERANCE_M`` and ``_RAD``."""
+    distance = float(np.linalg.norm(pose_world_tcp[:3, 3] - goal_world_tcp[:3, 3]))
+    angle = rotation_angle_between(pose_world_tcp[:3, :3], goal_world_tcp[:3, :3])
+    return distance <= AT_POSE_TOLERANCE_M and angle <= AT_POSE_TOLERANCE_RAD
 
 
 def _first_allowed(candidates: Iterable[Callable[[], list[Waypoint]]]) -> list[Waypoint]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,8 +21,15 @@ from drivers.tool import ToolBox, ToolModel
 from drivers.ur5.kinematics import inverse_kinematics
 from models.geometry import invert_transform, transform_points
 
+if TYPE_CHECKING:
+    from controller.perception.protocol import ShapeEstimate
+
 NEAR_PARTS_CLEARANCE_FRACTION = 0.25
 """``near_parts`` keep this fraction of ``shape_clearance_m`` from where the object may be."""
+POSSIBLE_OCCUPANCY = 0.1
+"""Voxels above this probability are where the object may be: transits, and the tool parts that
+do not lead into a touch, keep their clearance from them. The vision estimate (v > 0.5) is too
+small in places, so a lower threshold is used (docs/controller.md)."""
 
 
 class SafetyViolation(MotionRejectedError):
@@ -42,6 +50,16 @@ class Obstacles:
     @classmethod
     def none(cls) -> Obstacles:
         return cls(np.zeros((0, 3)))
+
+    @classmethod
+    def of_estimate(cls, estimate: ShapeEstimate | None) -> Obstacles:
+        """A shape estimate as obstacles: occupied, and where the object may be (none
+        without an estimate)."""
+        if estimate is None:
+            return cls.none()
+        return cls(
+            estimate.occupied_points_world(), estimate.occupied_points_world(POSSIBLE_OCCUPANCY)
+        )
 
     @property
     def possible(self) -> NDArray[np.float64]:

@@ -31,9 +31,10 @@ from controller.perception.protocol import (
 from controller.request import ExploreRequest
 from drivers.base import RGBDFrame
 from drivers.factory import Devices
-from models.geometry import make_transform
+from models.geometry import VoxelGrid, make_transform
+from models.prior.auto import AUTO, choose_prior
 from models.prior.networks import LATENT_DIM
-from models.prior.shape_prior import ShapePrior
+from models.prior.shape_prior import ShapePrior, available_priors
 from models.tactile.lut import (
     GelSightLUT,
     build_lut_from_datapack,
@@ -120,6 +121,15 @@ class LearnedPerception:
                 self._priors[name].check_grid(self.grid)
             return self._priors[name]
 
+    def prior_names(self) -> frozenset[str]:
+        """The priors of the configured preset in the weights folder, any given loaded, and
+        ``auto`` (the best of them for each image)."""
+        models = self.config.models
+        listed = available_priors(models.weights_dir or None)
+        names = {n for n, specs in listed.items() if models.preset in {s.preset for s in specs}}
+        names |= set(self._priors)
+        return frozenset(names | {AUTO}) if names else frozenset()
+
     def warm_up(self, prior_name: str) -> None:
         """Run one refinement step on a dummy touch: the first ``torch.optim.Adam`` of a process
         imports ``torch._dynamo`` (~1.3 s here), which would otherwise land on the first touch."""
@@ -134,17 +144,22 @@ class LearnedPerception:
     # --- Perception -----------------------------------------------------------------------------
 
     def reconstruct(self, frame: RGBDFrame, request: ExploreRequest) -> ShapeEstimate:
-        prediction = self.prior(request.prior).predict(
+        names = self.prior_names() - {AUTO} if request.prior == AUTO else {request.prior}
+        prediction, scores = choose_prior(
+            {name: self.prior(name) for name in sorted(names)},
             frame.colour_rgb,
             frame.intrinsics,
             frame.pose_world_camera,
             self.grid,
             depth_m=frame.depth_m if request.input == "rgbd" else None,
         )
+        if request.prior == AUTO:
+            log.info("prior auto: %s (silhouette agreement %s)", prediction.prior, scores)
         return ShapeEstimate(
-            grid=self.grid,
+            grid=prediction.grid,
             probabilities=prediction.probabilities,
             latent=prediction.latent,
+            prior=prediction.prior,
             sketches={
                 "depth_m": prediction.depth_m,
                 "normals": ((prediction.normals_camera + 1.0) * 127.5).astype(np.uint8),
@@ -163,12 +178,13 @@ class LearnedPerception:
     ) -> TouchTarget | None:
         # What the touches measured is known: the policy sees it written into the estimate, so
         # the windows they answered are confident and are not chosen again.
-        known = direct_edit(estimate.probabilities, self._constraints(outcomes))
+        grid = estimate.grid
+        known = direct_edit(estimate.probabilities, self.constraints(outcomes, grid))
         feasible = all_of(
             above_table_filter(
                 self.config.motion.approach_distance_m, self.config.limits.table_clearance_m
             ),
-            facing_surface_filter(estimate.probabilities, self.grid, MAX_APPROACH_ANGLE_DEG),
+            facing_surface_filter(estimate.probabilities, grid, MAX_APPROACH_ANGLE_DEG),
             not_repeated_filter(
                 [
                     (o.measurement.target.target_world, o.measurement.target.direction_world)
@@ -178,18 +194,18 @@ class LearnedPerception:
             ),
         )
         if request.policy == "active":
-            for candidate in touch_candidates(known, self.grid, feasible):
+            for candidate in touch_candidates(known, grid, feasible):
                 target = TouchTarget(
                     candidate.target_world, candidate.approach_direction_world, candidate.score
                 )
                 if allowed(target):
                     return target
             return None
-        box = predicted_bounding_box_world(estimate.probabilities, self.grid)
+        box = predicted_bounding_box_world(estimate.probabilities, grid)
         if box is None:
             return None
         for _ in range(RANDOM_POLICY_TRIES):
-            candidate = random_touch(box[0], box[1], self.grid, self._rng, feasible)
+            candidate = random_touch(box[0], box[1], grid, self._rng, feasible)
             if candidate is None:
                 return None
             target = TouchTarget(candidate.target_world, candidate.approach_direction_world)
@@ -231,13 +247,13 @@ class LearnedPerception:
             measurement=measurement,
             contact_points_world=points,
             height_map_mm=reconstruction.height_mm,
-            constraints=touch_constraints(touch, self.grid),
+            touch=touch,
         )
 
     def refine(
         self, estimate: ShapeEstimate, outcomes: list[TouchOutcome], request: ExploreRequest
     ) -> ShapeEstimate:
-        return self.refine_with(estimate, self._constraints(outcomes), request)
+        return self.refine_with(estimate, self.constraints(outcomes, estimate.grid), request)
 
     def refine_with(
         self, estimate: ShapeEstimate, constraints: VoxelConstraints, request: ExploreRequest
@@ -248,7 +264,7 @@ class LearnedPerception:
             return replace(estimate, probabilities=probabilities)
         models = self.config.models
         result = refine_latent(
-            self.prior(request.prior).decode,
+            self.prior(estimate.prior or request.prior).decode,
             torch.as_tensor(estimate.latent),
             constraints,
             learning_rate=models.refine_learning_rate,
@@ -268,11 +284,12 @@ class LearnedPerception:
 
     # --- helpers --------------------------------------------------------------------------------
 
-    def _constraints(self, outcomes: list[TouchOutcome]) -> VoxelConstraints:
-        """The voxel constraints of all touches so far."""
-        constraints = VoxelConstraints.none(self.grid.resolution)
+    def constraints(self, outcomes: list[TouchOutcome], grid: VoxelGrid) -> VoxelConstraints:
+        """The voxel constraints of all touches so far in ``grid`` (the estimate's)."""
+        constraints = VoxelConstraints.none(grid.resolution)
         for outcome in outcomes:
-            constraints = constraints.merged(outcome.constraints)
+            if outcome.touch is not None:
+                constraints = constraints.merged(touch_constraints(outcome.touch, grid))
         return constraints
 
     def _reconstructor(self, measurement: TouchMeasurement) -> TactileReconstructor:

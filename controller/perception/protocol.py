@@ -20,13 +20,16 @@ FloatArray = NDArray[np.float64]
 
 @dataclass
 class ShapeEstimate:
-    """Occupancy probabilities on the registered voxel grid, indexed [i, j, k] (see
-    docs/conventions.md), and what produced them."""
+    """Occupancy probabilities on a voxel grid, indexed [i, j, k] (see docs/conventions.md),
+    and what produced them. The grid is the registered one or, for a prior of the object frame,
+    the one fitted to the object in this session's image."""
 
     grid: VoxelGrid
     probabilities: NDArray[np.float32]
     latent: Any | None = None
     """The prior's latent code (a torch tensor) when a prior made this estimate."""
+    prior: str = ""
+    """The prior that made the estimate: its decoder refines it (``auto`` chose it)."""
     sketches: dict[str, NDArray] = field(default_factory=dict)
     vision_probabilities: NDArray[np.float32] | None = None
     """The estimate from vision alone (what Direct Edit edits)."""
@@ -70,8 +73,10 @@ class TouchOutcome:
     measurement: TouchMeasurement
     contact_points_world: FloatArray
     height_map_mm: NDArray[np.float32] | None
-    constraints: Any
-    """Whatever the refinement consumes (voxel constraints)."""
+    touch: Any
+    """What the touch says of space, in the world frame and independent of any voxel grid
+    (``models.touch.constraints.TouchResult``: rays ending on contact points or swept free);
+    None when the perception keeps nothing."""
 
     @property
     def contact_point_world(self) -> FloatArray | None:
@@ -80,6 +85,11 @@ class TouchOutcome:
 
 
 class Perception(Protocol):
+    def prior_names(self) -> frozenset[str]:
+        """The shape priors ``reconstruct`` accepts (``request.prior``): requests naming
+        another are refused before a session starts."""
+        ...
+
     def reconstruct(self, frame: RGBDFrame, request: ExploreRequest) -> ShapeEstimate: ...
 
     def select(

@@ -15,10 +15,15 @@ Behaviour of a running move:
   raises ``ProtectiveStopError``. Joint limits or a singularity (a joint would have to exceed
   ``max_joint_speed_rad_s``): the arm stays at the last valid pose, ``MotionRejectedError``.
 - Simulated time past ``timeout_s``: the arm stops where it is, ``DeviceTimeoutError``.
+
+Each step's forward kinematics and collision check (milliseconds, more near the object) run in
+a worker thread on the joints and finger opening read before the hop; the step is committed to
+the world on the event loop after it, so a cancelled move commits nothing more.
 """
 
 from __future__ import annotations
 
+import asyncio
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -36,7 +41,7 @@ from drivers.base import (
     ProtectiveStopError,
 )
 from drivers.config import ArmConfig
-from drivers.sim.world import SimWorld
+from drivers.sim.world import Collision, SimWorld
 from drivers.ur5.kinematics import forward_kinematics, inverse_kinematics
 from models.geometry import invert_transform, matrix_to_ur_pose, ur_pose_to_matrix
 
@@ -247,14 +252,27 @@ class SimUR5(Arm):
                 await self._world.clock.advance(period_s)
                 if not self._connected:
                     raise DeviceNotConnectedError("arm closed during a move")
-                self._commit(joints_at(step * period_s), period_s)
+                joints = joints_at(step * period_s)
+                self._check_joint_step(joints, period_s)
+                pose_base_flange, collision = await asyncio.to_thread(
+                    self._flange_and_collision, joints, self._world.gripper_width_m
+                )
+                if not self._connected:
+                    raise DeviceNotConnectedError("arm closed during a move")
+                if collision is not None:
+                    self._protective_stop_at_s = self._world.clock.now_s
+                    raise ProtectiveStopError(
+                        f"protective stop: {collision.part} hit the {collision.obstacle}"
+                    )
+                self._world.joints_rad = joints
+                self._world.pose_base_flange = pose_base_flange
         finally:
             self._moving = False
 
-    def _commit(self, joints: FloatArray, period_s: float) -> None:
-        """Move the world's arm to ``joints`` after checking joint speed and collisions. A joint
-        that would have to turn faster than its limit means a singularity on the path, or, when
-        it is off by a full turn, that it would pass its +-2 pi limit (IK stays within it)."""
+    def _check_joint_step(self, joints: FloatArray, period_s: float) -> None:
+        """A joint that would have to turn faster than its limit means a singularity on the
+        path, or, when it is off by a full turn, that it would pass its +-2 pi limit (IK stays
+        within it)."""
         max_step_rad = self._config.max_joint_speed_rad_s * period_s * (1.0 + 1e-9)
         step_rad = joints - self._world.joints_rad
         if np.any(np.abs(step_rad) > max_step_rad):
@@ -266,17 +284,15 @@ class SimUR5(Arm):
                 f"joint {joint} would exceed {self._config.max_joint_speed_rad_s} rad/s"
                 " (singularity on the path)"
             )
+
+    def _flange_and_collision(
+        self, joints: FloatArray, width_m: float
+    ) -> tuple[FloatArray, Collision | None]:
+        """The flange pose at ``joints`` and what the tool would hit there (run in a worker
+        thread: reads only the world's fixed geometry)."""
         pose_base_flange = forward_kinematics(joints)
-        collision = self._world.tool_collision(
-            self._world.pose_world_base @ pose_base_flange, self._world.gripper_width_m
-        )
-        if collision is not None:
-            self._protective_stop_at_s = self._world.clock.now_s
-            raise ProtectiveStopError(
-                f"protective stop: {collision.part} hit the {collision.obstacle}"
-            )
-        self._world.joints_rad = joints
-        self._world.pose_base_flange = pose_base_flange
+        pose_world_tcp = self._world.pose_world_base @ pose_base_flange
+        return pose_base_flange, self._world.tool_collision(pose_world_tcp, width_m)
 
     # --- checks ---------------------------------------------------------------------------------
 

@@ -51,7 +51,10 @@ class SimKinect(RGBDCamera):
     async def read(self, *, timeout_s: float = 2.0) -> RGBDFrame:
         if self._clean is None:
             raise DeviceNotConnectedError("simulated camera is not connected")
-        clean = self._clean
+        # The depth noise takes tens of milliseconds: a worker thread's, not the loop's.
+        return await asyncio.to_thread(self._frame, self._clean, self.world.clock.now_s)
+
+    def _frame(self, clean: RenderOutput, timestamp_s: float) -> RGBDFrame:
         depth = clean.depth_m
         if self.config.depth_noise:
             depth = apply_kinect_depth_noise(
@@ -62,7 +65,7 @@ class SimKinect(RGBDCamera):
             depth_m=depth.astype(np.float32),
             intrinsics=self.intrinsics,
             pose_world_camera=self.pose_world_camera.copy(),
-            timestamp_s=self.world.clock.now_s,
+            timestamp_s=timestamp_s,
             normals_camera=clean.normals_camera,
             silhouette=clean.silhouette,
         )

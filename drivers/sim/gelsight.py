@@ -1,4 +1,5 @@
-"""Simulated GelSight: the pad's indentation at its current pose, imaged by the real optics."""
+"""Simulated GelSight: the pad's indentation at its current pose, imaged by the real optics
+(in worker threads: a frame takes tens of milliseconds)."""
 
 from __future__ import annotations
 
@@ -49,17 +50,22 @@ class SimGelSight(TactileSensor):
 
     async def read(self, *, timeout_s: float = 1.0) -> TactileFrame:
         self._require_connected()
-        pose_world_pad = self.world.pose_world_pad()
+        pose_world_pad, now_s = self.world.pose_world_pad(), self.world.clock.now_s
         image = await asyncio.to_thread(self._image, pose_world_pad)
-        return TactileFrame(image_bgr=image, timestamp_s=self.world.clock.now_s)
+        return TactileFrame(image_bgr=image, timestamp_s=now_s)
 
     async def reference(self, *, timeout_s: float = 5.0) -> TactileFrame:
         """The no-contact frame as a real sensor's reference: the mean of 10 noisy frames."""
         self._require_connected()
+        now_s = self.world.clock.now_s
+        # Ten renders take a few hundred milliseconds: a worker thread's, not the loop's.
+        image = await asyncio.to_thread(self._reference_image)
+        return TactileFrame(image_bgr=image, timestamp_s=now_s)
+
+    def _reference_image(self) -> np.ndarray:
         no_contact = np.zeros(self.simulator.spec.shape, dtype=np.float32)
         frames = [self.simulator.render_bgr(no_contact, self.rng) for _ in range(10)]
-        mean = np.mean(frames, axis=0).round().astype(np.uint8)
-        return TactileFrame(image_bgr=mean, timestamp_s=self.world.clock.now_s)
+        return np.mean(frames, axis=0).round().astype(np.uint8)
 
     def _image(self, pose_world_pad: np.ndarray) -> np.ndarray:
         indentation = self.simulator.indentation_mm(self.world.scene_mesh_world, pose_world_pad)

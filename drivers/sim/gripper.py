@@ -5,6 +5,10 @@ force comes from the tactile simulation's elastic model; the fingers stop ("bloc
 force reaches the commanded force limit, when the gel bottoms out on its rigid backing, or when
 any rigid part of the tool runs into the object or the table (then the motor stalls at the force
 limit). Motion runs at constant speed in simulated time and can be stopped or cancelled.
+
+Planning where a move stops (tens to hundreds of milliseconds of ray casts and gel simulation)
+and the gel force of ``state`` run in worker threads, from the TCP pose read before the hop;
+the opening is changed on the event loop only (see ``SimWorld``).
 """
 
 from __future__ import annotations
@@ -110,19 +114,22 @@ class SimWSG50(Gripper):
         if not 0.0 < force_limit_n <= self.config.max_force_n:
             raise MotionRejectedError(f"force limit {force_limit_n} N outside (0, max_force_n]")
 
-        start_m = self.world.gripper_width_m
-        stop = self._plan(start_m, width_m, force_limit_n)
-        duration_s = abs(stop.width_m - start_m) / speed_m_s
-        if duration_s > timeout_s:
-            raise DeviceTimeoutError(
-                f"gripper move of {abs(stop.width_m - start_m) * 1e3:.1f} mm at {speed_m_s} m/s"
-                f" takes {duration_s:.2f} s, over the {timeout_s} s timeout"
-            )
+        # Busy from here: planning awaits a worker thread, and a stop() meanwhile counts.
         self._stop_requested.clear()
         self._moving = True
-        self._blocked = False
-        self._stall_force_n = None
         try:
+            start_m = self.world.gripper_width_m
+            stop = await asyncio.to_thread(
+                self._plan, self.world.pose_world_tcp(), start_m, width_m, force_limit_n
+            )
+            duration_s = abs(stop.width_m - start_m) / speed_m_s
+            if duration_s > timeout_s:
+                raise DeviceTimeoutError(
+                    f"gripper move of {abs(stop.width_m - start_m) * 1e3:.1f} mm at"
+                    f" {speed_m_s} m/s takes {duration_s:.2f} s, over the {timeout_s} s timeout"
+                )
+            self._blocked = False
+            self._stall_force_n = None
             elapsed_s = 0.0
             while elapsed_s < duration_s:
                 if self._stop_requested.is_set():
@@ -145,14 +152,14 @@ class SimWSG50(Gripper):
 
     async def state(self) -> GripperState:
         self._require_connected()
-        width = self.world.gripper_width_m
-        force = self._stall_force_n if self._stall_force_n is not None else self._gel_force_n(width)
+        # All read before the force's worker thread: the state is of one instant.
+        width, pose_world_tcp = self.world.gripper_width_m, self.world.pose_world_tcp()
+        moving, blocked, now_s = self._moving, self._blocked, self.world.clock.now_s
+        force = self._stall_force_n
+        if force is None:
+            force = await asyncio.to_thread(self._gel_force_n, pose_world_tcp, width)
         return GripperState(
-            width_m=width,
-            force_n=force,
-            is_moving=self._moving,
-            blocked=self._blocked,
-            timestamp_s=self.world.clock.now_s,
+            width_m=width, force_n=force, is_moving=moving, blocked=blocked, timestamp_s=now_s
         )
 
     # --- physics --------------------------------------------------------------------------------
@@ -161,21 +168,27 @@ class SimWSG50(Gripper):
         if not self._connected:
             raise DeviceNotConnectedError("simulated gripper is not connected")
 
-    def _gel_force_n(self, width_m: float) -> float:
+    def _gel_force_n(self, pose_world_tcp: NDArray[np.float64], width_m: float) -> float:
         # Polled often while the arm approaches: a few hundred rays say "nothing near" cheaply.
-        if self._pad_gap_m(width_m) > 0.0:
+        if self._pad_gap_m(pose_world_tcp, width_m) > 0.0:
             return 0.0
-        pose_world_pad = self.world.pose_world_tcp() @ self.world.tool.pose_tcp_pad(width_m)
+        pose_world_pad = pose_world_tcp @ self.world.tool.pose_tcp_pad(width_m)
         indentation = self.gel.indentation_mm(self.world.scene_mesh_world, pose_world_pad)
         if self.gel.bottomed_out(indentation):
             return self.config.max_force_n  # pressed onto the rigid backing: the finger stalls
         return self.gel.contact_force_n(indentation)
 
-    def _block_reason(self, width_m: float, force_limit_n: float, *, gel: bool) -> str | None:
+    def _block_reason(
+        self,
+        pose_world_tcp: NDArray[np.float64],
+        width_m: float,
+        force_limit_n: float,
+        *,
+        gel: bool,
+    ) -> str | None:
         """Why the fingers cannot be at this opening: "rigid" (a rigid tool part in the object
         or table, or the gel bottomed out on its backing), "force" (gel force at the limit), or
         None. ``gel=False`` skips the gel test where the pad cannot reach anything."""
-        pose_world_tcp = self.world.pose_world_tcp()
         if self.world.tool_collision(pose_world_tcp, width_m) is not None:
             return "rigid"
         if not gel:
@@ -186,27 +199,35 @@ class SimWSG50(Gripper):
             return "rigid"
         return "force" if self.gel.contact_force_n(indentation) >= force_limit_n else None
 
-    def _plan(self, start_m: float, target_m: float, force_limit_n: float) -> _Stop:
+    def _plan(
+        self,
+        pose_world_tcp: NDArray[np.float64],
+        start_m: float,
+        target_m: float,
+        force_limit_n: float,
+    ) -> _Stop:
         """Where a move from start to target ends: sweep, then bisect the first blocking step.
 
         The world is static while the fingers move (the arm is not commanded meanwhile), so the
         stopping opening can be found before the motion is played out in simulated time.
         """
-        gap_m = self._pad_gap_m(start_m)
+        gap_m = self._pad_gap_m(pose_world_tcp, start_m)
         steps = max(1, math.ceil(abs(target_m - start_m) / SWEEP_STEP_M))
         free_m = start_m
         for width_m in np.linspace(start_m, target_m, steps + 1)[1:]:
             # The pad advances half the change in opening; until it closes the gap to the
             # nearest surface only the rigid parts can collide (a cheap test).
             pad_reach = (width_m - start_m) / 2 >= gap_m - SWEEP_STEP_M
-            reason = self._block_reason(width_m, force_limit_n, gel=pad_reach)
+            reason = self._block_reason(pose_world_tcp, width_m, force_limit_n, gel=pad_reach)
             if reason is None:
                 free_m = width_m
                 continue
             blocked_m = width_m
             while abs(blocked_m - free_m) > CONTACT_TOLERANCE_M:
                 middle_m = (free_m + blocked_m) / 2
-                middle_reason = self._block_reason(middle_m, force_limit_n, gel=True)
+                middle_reason = self._block_reason(
+                    pose_world_tcp, middle_m, force_limit_n, gel=True
+                )
                 if middle_reason is None:
                     free_m = middle_m
                 else:
@@ -214,10 +235,10 @@ class SimWSG50(Gripper):
             return _Stop(free_m, blocked=True, rigid=reason == "rigid")
         return _Stop(target_m, blocked=False, rigid=False)
 
-    def _pad_gap_m(self, width_m: float) -> float:
+    def _pad_gap_m(self, pose_world_tcp: NDArray[np.float64], width_m: float) -> float:
         """Distance from the undeformed gel to the nearest surface along the pad normal
         (0 if already touching, inf if nothing is in front)."""
-        pose_world_pad = self.world.pose_world_tcp() @ self.world.tool.pose_tcp_pad(width_m)
+        pose_world_pad = pose_world_tcp @ self.world.tool.pose_tcp_pad(width_m)
         spec = self.gel.spec
         backing_m = spec.gel_thickness_mm * 1e-3
         xs = np.linspace(-spec.width_mm / 2, spec.width_mm / 2, PRECHECK_GRID[0]) * 1e-3

@@ -3,6 +3,13 @@
 One ``SimWorld`` holds the table, the fixed object, the arm's joint state and the finger opening;
 the simulated camera, GelSight, arm and gripper all read and change this one state, so a touch
 seen by the GelSight is exactly where the arm and gripper put the pad.
+
+Threads: the state (joints, flange pose, finger opening, clock) changes on the event loop only.
+The devices' heavy work (collision checks, finger planning, gel forces and images, depth noise)
+runs in worker threads on poses and openings read before the hop and on the fixed geometry
+(meshes, tool, their lazy caches built here), and its result is committed on the loop after the
+await: a call cancelled meanwhile commits nothing. The session awaits one device call at a time,
+so each computation starts from the state the previous one left.
 """
 
 from __future__ import annotations
@@ -26,11 +33,20 @@ from models.geometry import (
 )
 from models.procedural import object_mesh
 from models.render import Scene, SceneObject, make_table
+from models.shapes import check_explorable
 
 log = logging.getLogger(__name__)
 
 COLLISION_LINE_SPACING_M = 0.004
 """Spacing of the probe lines on each tool box face: thinner object slivers could slip through."""
+
+
+def min_object_extent_m(sensor: SensorConfig) -> float:
+    """The smallest object the bench explores: its largest side must be at least the gel
+    pad's (19 mm by default). Anything smaller fits inside one contact, so a touch cannot
+    tell one part of it from another and further touches add nothing; it would also be under
+    five voxels of the default 4 mm grid, below what the vision estimate resolves."""
+    return max(sensor.pad_width_mm, sensor.pad_height_mm) / 1e3
 
 
 class SimClock:
@@ -83,6 +99,11 @@ class SimWorld:
         self.scene_mesh_world = trimesh.util.concatenate(
             [self.object_mesh_world, self.table_mesh_world]
         )
+        # Worker threads query these meshes concurrently (device simulation, background
+        # scores): build trimesh's lazy caches now, so the threads only read them.
+        for mesh in (self.object_mesh_world, self.scene_mesh_world):
+            mesh.ray.intersects_any([[0.0, 0.0, 10.0]], [[0.0, 0.0, -1.0]])
+            _ = mesh.face_normals, mesh.area_faces
         self.tool = ToolModel(gripper, sensor)
         self.clock = SimClock(sim.real_time_factor)
         self.pose_world_base = ur_pose_to_matrix(arm.pose_world_base)
@@ -97,10 +118,23 @@ class SimWorld:
         arm: ArmConfig,
         gripper: GripperConfig,
         sensor: SensorConfig,
+        *,
+        max_object_extent_m: float | None = None,
     ) -> SimWorld:
-        """Build the object from the shape library (or a mesh file) at the world origin."""
+        """Build the object from the shape library (or a mesh file) at the world origin.
+
+        ShapeError (one line naming the file) when the bench cannot explore it: larger than
+        ``max_object_extent_m`` on a side (the controller passes its voxel grid's extent: the
+        shape is perceived in that cube; None = no upper limit), smaller than the gel pad
+        (``min_object_extent_m``), or not a closed solid."""
         rng = np.random.default_rng(sim.seed)
         mesh = object_mesh(sim.object, rng, up_axis=sim.object_up_axis, scale=sim.object_scale)
+        check_explorable(
+            mesh,
+            sim.object,
+            min_extent_m=min_object_extent_m(sensor),
+            max_extent_m=max_object_extent_m,
+        )
         mesh.apply_transform(
             make_transform(rotation_about_axis((0, 0, 1), np.radians(sim.object_yaw_deg)))
         )

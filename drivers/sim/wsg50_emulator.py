@@ -10,8 +10,8 @@ answer FEATURE_NOT_SUPPORTED. Faults for tests: ``silent`` (the device stops ans
 them).
 
 ``touchshape sim wsg --pty`` or ``--tcp HOST:PORT`` runs one for trying the driver without a
-gripper. The simulated gripper plans a move's contact on the emulator's event loop (tens to a
-few hundred milliseconds), so automatic updates can pause that long when a move starts.
+gripper. The simulated gripper plans a move's contact in a worker thread (tens to a few hundred
+milliseconds), so the emulator's event loop keeps answering meanwhile.
 """
 
 from __future__ import annotations

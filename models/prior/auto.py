@@ -10,6 +10,7 @@ needed, and the choice is made per view.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import replace
 
 import numpy as np
 from scipy import ndimage
@@ -63,12 +64,16 @@ def choose_prior(
     *,
     depth_m: np.ndarray | None = None,
 ) -> tuple[PriorPrediction, dict[str, float]]:
-    """The prediction of the prior whose shape best explains the image, and every prior's
-    score (ties go to the first prior in ``priors``' order)."""
+    """The prediction of the prior whose shape best explains the image (its ``prior`` is the
+    name it has in ``priors``), and every prior's score (ties go to the first in order)."""
     if not priors:
         raise ValueError("no priors to choose from")
+    # Each prediction carries the name it was asked for (a loaded prior may call itself else).
     predictions = {
-        name: prior.predict(colour_rgb, intrinsics, pose_world_camera, grid, depth_m=depth_m)
+        name: replace(
+            prior.predict(colour_rgb, intrinsics, pose_world_camera, grid, depth_m=depth_m),
+            prior=name,
+        )
         for name, prior in priors.items()
     }
     scores = {

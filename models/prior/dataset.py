@@ -35,12 +35,12 @@ import torch
 import trimesh
 
 from models.camera import CameraIntrinsics, look_at_pose
-from models.families import FAMILIES, SIZE_RANGE_M, make_family_shape
+from models.families import FAMILIES, SHAPE_GROUPS, SIZE_RANGE_M, make_family_shape
 from models.files import write_atomically, write_json_atomically
 from models.geometry import VoxelGrid, axes_facing_camera, make_transform, rotation_about_axis
 from models.prior.frame import FrameError, fit_object_grid, search_grid
 from models.prior.virtual_camera import GridCrop, grid_crop
-from models.procedural import ALL_CATEGORIES, CATEGORIES, procedural_shape
+from models.procedural import CATEGORIES, procedural_shape
 from models.render import (
     Lighting,
     RenderOutput,
@@ -57,8 +57,6 @@ EVAL_SEED_START = 1_000_000
 
 BACKGROUNDS: tuple[str, ...] = ("white", "gradient", "texture")
 
-SHAPE_GROUPS: tuple[str, ...] = (*ALL_CATEGORIES, *FAMILIES)
-"""Everything a dataset can draw shapes from; a group's index here seeds its shapes."""
 
 # ShapeNetCore synset ids of the paper's 14 categories.
 SHAPENET_SYNSETS: dict[str, str] = {

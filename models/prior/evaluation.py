@@ -21,10 +21,11 @@ import numpy as np
 import trimesh
 
 from models.camera import CameraIntrinsics
+from models.families import SHAPE_GROUPS
 from models.geometry import VoxelGrid, axes_facing_camera, make_transform, rotation_about_axis
 from models.metrics import mesh_metrics, voxel_iou
 from models.prior.auto import AUTO, choose_prior
-from models.prior.dataset import EVAL_SEED_START, SHAPE_GROUPS, generated_shape, shape_rngs
+from models.prior.dataset import EVAL_SEED_START, generated_shape, shape_rngs
 from models.prior.shape_prior import ShapePrior
 from models.render import Scene, apply_kinect_depth_noise, render
 from models.shapes import voxelize

@@ -20,7 +20,7 @@ from controller.benchmarks.explore import (
 )
 from controller.benchmarks.explore_summary import plot_curves, summarise
 from controller.benchmarks.sim_touch import SimTouchBench
-from controller.cli.main import build_parser
+from controller.cli.main import main
 from controller.config import Config
 from controller.perception.learned import LearnedPerception, load_calibration
 from controller.perception.protocol import TouchTarget
@@ -76,7 +76,8 @@ def test_contact_on_a_box_edge_gives_contact_points(box_bench, config, calibrati
     target = TouchTarget(edge, np.array([-1.0, -1.0, 0.0]) / np.sqrt(2))
     measurement = box_bench.touch(target, noise_seed=(0,))
     assert measurement is not None and measurement.contact
-    outcome = perception_for(config, calibration).interpret(measurement)
+    perception = perception_for(config, calibration)
+    outcome = perception.interpret(measurement)
     points = outcome.contact_points_world
     assert len(points) > 0
     # On the box's surface, next to the vertical edge.
@@ -86,7 +87,8 @@ def test_contact_on_a_box_edge_gives_contact_points(box_bench, config, calibrati
     assert np.percentile(outside + inside, 90) < 1e-3
     assert np.max(outside + inside) < 2e-3
     assert np.abs(points[:, :2] - edge[:2]).max() < 4e-3
-    assert len(outcome.constraints.occupied) > 0 and len(outcome.constraints.empty) > 0
+    constraints = perception.constraints([outcome], perception.grid)
+    assert len(constraints.occupied) > 0 and len(constraints.empty) > 0
 
 
 def test_refinement_writes_the_measured_voxels_into_the_shape(
@@ -115,8 +117,9 @@ def test_refinement_writes_the_measured_voxels_into_the_shape(
     request = ExploreRequest(update="prior")
     refined = perception.refine(vision, [outcome], request)
     flat = refined.probabilities.reshape(-1)
-    assert np.all(flat[outcome.constraints.empty] == 0.0)
-    assert np.all(flat[outcome.constraints.occupied] == 1.0)
+    constraints = perception.constraints([outcome], perception.grid)
+    assert np.all(flat[constraints.empty] == 0.0)
+    assert np.all(flat[constraints.occupied] == 1.0)
     assert not torch.equal(torch.as_tensor(refined.latent), latent)
     assert refined.vision_latent is latent
 
@@ -268,24 +271,55 @@ def test_settings_reject_unknown_methods() -> None:
     assert set(METHODS) == set(ExploreSettings().methods)
 
 
-def test_cli_parses_the_issue_command() -> None:
-    args = build_parser().parse_args(
+def test_the_issue_command_runs_the_benchmark_as_asked(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """What the command line says is what the benchmark gets: objects, settings, prior, workers,
+    the JSON and the plot (the benchmark itself is replaced by a recorder)."""
+    import controller.benchmarks.explore as explore_module
+    import controller.benchmarks.explore_summary as summary_module
+    import controller.cli.bench as bench_cli
+    import controller.perception.learned as learned
+
+    calls: dict = {}
+
+    def run(config: Config, objects: list, settings: object, **kwargs: object) -> dict:
+        calls.update(objects=objects, settings=settings, **kwargs)
+        return {"summary": {"objects": len(objects)}}
+
+    monkeypatch.setattr(explore_module, "run_explore_benchmark", run)
+    monkeypatch.setattr(
+        explore_module,
+        "file_objects",
+        lambda paths, up_axis, fit_size_m: [(path.name, up_axis) for path in paths],
+    )
+    monkeypatch.setattr(bench_cli, "_load_prior", lambda config, name: f"prior {name}")
+    monkeypatch.setattr(learned, "load_calibration", lambda config: "calibration")
+    monkeypatch.setattr(summary_module, "plot_curves", lambda result, path: calls.update(plot=path))
+    monkeypatch.setattr(torch, "set_num_threads", lambda n: calls.update(threads=n))
+    out, plot = tmp_path / "out.json", tmp_path / "p.png"
+    code = main(
         [
             *("bench", "explore", "--objects", "a.obj", "b.stl", "--up-axis", "y"),
-            *("--touches", "10", "--methods", ",".join(METHODS), "--json", "out.json"),
-            *("--plot", "p.png", "--random-runs", "10", "--oracle-candidates", "4"),
-            *("--prior", "box", "--input", "rgbd"),
+            *("--touches", "10", "--methods", ",".join(METHODS), "--json", str(out)),
+            *("--plot", str(plot), "--random-runs", "10", "--oracle-candidates", "4"),
+            *("--prior", "box", "--input", "rgbd", "--workers", "2"),
         ]
     )
-    assert args.handler.__name__ == "bench_explore"
-    assert args.objects == [Path("a.obj"), Path("b.stl")] and args.up_axis == "y"
-    assert args.methods.split(",") == list(METHODS)
-    assert (args.random_runs, args.oracle_candidates, args.prior, args.input) == (
-        10,
-        4,
-        "box",
-        "rgbd",
+    assert code == 0
+    assert calls["objects"] == [("a.obj", "y"), ("b.stl", "y")]
+    assert calls["settings"] == ExploreSettings(
+        touches=10,
+        methods=tuple(METHODS),
+        random_runs=10,
+        oracle_candidates=4,
+        input_mode="rgbd",
+        prior="box",
     )
+    assert calls["prior"] == "prior box" and calls["calibration"] == "calibration"
+    assert calls["workers"] == 2 and calls["threads"] == 1
+    assert calls["plot"] == plot
+    assert json.loads(out.read_text())["summary"] == {"objects": 2}
 
 
 @pytest.mark.slow

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -20,7 +21,7 @@ from controller.benchmarks.explore_bounds import (
     run_bounds,
     summarise_bounds,
 )
-from controller.cli.main import build_parser
+from controller.cli.main import main
 from controller.config import Config
 from controller.perception.learned import load_calibration
 from models.geometry import make_transform
@@ -139,9 +140,31 @@ def test_bounds_json_on_a_small_object() -> None:
     assert set(result["summary"]["ideal_oracle_touches"]) == {"2"}
 
 
-def test_cli_parses_the_bounds_command() -> None:
-    args = build_parser().parse_args(
-        ["bench", "explore-bounds", "--touches", "10", "30", "--workers", "2", "--json", "b.json"]
-    )
-    assert args.handler.__name__ == "bench_explore_bounds"
-    assert args.touches == [10, 30] and args.workers == 2 and args.fit_steps == 300
+def test_the_bounds_command_runs_the_bounds_as_asked(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """What the command line says is what the bounds get: the held-out objects, the touch
+    counts, the prior, the workers and the JSON (the measurement is replaced by a recorder)."""
+    import controller.cli.bench as bench_cli
+    import controller.perception.learned as learned
+    import models.prior.evaluation as evaluation
+
+    calls: dict = {}
+
+    def run(config: Config, objects: list, settings: object, **kwargs: object) -> dict:
+        calls.update(objects=objects, settings=settings, **kwargs)
+        return {"summary": {"objects": len(objects)}}
+
+    monkeypatch.setattr(explore_bounds, "run_bounds", run)
+    monkeypatch.setattr(evaluation, "held_out_objects", lambda categories, n: [(categories, n)])
+    monkeypatch.setattr(bench_cli, "_load_prior", lambda config, name: f"prior {name}")
+    monkeypatch.setattr(learned, "load_calibration", lambda config: "calibration")
+    monkeypatch.setattr(torch, "set_num_threads", lambda n: calls.update(threads=n))
+    out = tmp_path / "b.json"
+    argv = ["bench", "explore-bounds", "--touches", "10", "30", "--workers", "2"]
+    assert main([*argv, "--json", str(out), "--prior", "box"]) == 0
+    assert calls["settings"] == BoundsSettings(touch_counts=(10, 30), prior="box")
+    assert len(calls["objects"]) == 1 and calls["objects"][0][1] == 1  # one per category
+    assert calls["prior"] == "prior box" and calls["calibration"] == "calibration"
+    assert calls["workers"] == 2 and calls["threads"] == 1
+    assert json.loads(out.read_text())["summary"] == {"objects": 1}

@@ -202,8 +202,15 @@ def test_evaluate_prints_the_accuracy_table(
 def test_bench_reports_the_keys_and_an_honest_baseline() -> None:
     result = benchmark_gelsight(frames=3)
     assert {"fps", "fps_straightforward", "peak_memory_mb"} <= result.keys()
-    assert result["fps"] > 0 and result["fps_straightforward"] > 0
-    assert result["peak_memory_mb"] > 0
+    assert result["frames"] == 3 and result["resolution"] == [640, 480]
+    # The rates are the inverse of the median frame times, and the speed-up is their ratio.
+    assert result["fps"] == pytest.approx(1e3 / result["median_ms"], rel=0.01, abs=0.1)
+    straightforward_fps = 1e3 / result["median_ms_straightforward"]
+    assert result["fps_straightforward"] == pytest.approx(straightforward_fps, rel=0.01, abs=0.1)
+    ratio = result["median_ms_straightforward"] / result["median_ms"]
+    assert result["speedup"] == pytest.approx(ratio, rel=0.01, abs=0.01)
+    # The peak holds at least the frame's height map (640 x 480 float64: 2.3 MB).
+    assert result["peak_memory_mb"] >= 640 * 480 * 8 / 2**20
     # The baseline computes the same height maps (the textbook DST-I's zero border and
     # half-pixel-shifted differences account for the rest; measured 0.053 mm).
     assert result["max_height_difference_mm"] < 0.1

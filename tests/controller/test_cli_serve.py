@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from controller.config import MessagingConfig
+from controller.messaging import open_session
 from models.prior.networks import ShapeNet, SketchNet, get_preset
 from models.prior.training import save_weights
 
@@ -68,17 +70,52 @@ def test_serve_stops_cleanly_on_signals(config_file: Path, sig: signal.Signals) 
     try:
         assert process.stdout is not None
         deadline = time.monotonic() + 120
+        lines = []
         for line in process.stdout:
+            lines.append(line)
             if "touchshape serving" in line:
                 break
             assert time.monotonic() < deadline, "service did not start"
         else:
             pytest.fail(f"service exited early with {process.wait()}")
+        # What test_bad_endpoint_fails_before_any_device_moves must not see.
+        assert any("homing the gripper" in line for line in lines)
         process.send_signal(sig)
         assert process.wait(timeout=60) == 0
     finally:
         if process.poll() is None:
             process.kill()
+
+
+@pytest.mark.parametrize("listen", ["taken", "garbage", "tcp/127.0.0.1:99999"])
+def test_bad_endpoint_fails_before_any_device_moves(config_file: Path, listen: str) -> None:
+    """A second `serve` on a used port, or an endpoint Zenoh cannot bind: one line naming the
+    endpoint, rc 2, and no device connected (the gripper is not homed)."""
+    holder = None
+    if listen == "taken":
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            listen = f"tcp/127.0.0.1:{probe.getsockname()[1]}"
+        holder = open_session(MessagingConfig(listen=(listen,)))  # as a first `serve` does
+    try:
+        started = time.monotonic()
+        result = subprocess.run(
+            [TOUCHSHAPE, "serve", "--config", str(config_file), "--listen", listen],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        elapsed = time.monotonic() - started
+    finally:
+        if holder is not None:
+            holder.close()
+    print(f"serve --listen {listen}: rc {result.returncode} after {elapsed:.2f} s")
+    assert result.returncode == 2, result.stdout + result.stderr
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("touchshape: error:"), result.stderr
+    assert listen in lines[0]
+    assert "homing" not in result.stdout + result.stderr
+    assert "touchshape serving" not in result.stdout
 
 
 def test_explore_prints_a_summary(config_file: Path) -> None:

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import tomllib
+import typing
 from pathlib import Path
 
 import pytest
@@ -11,10 +14,12 @@ from controller.cli.main import main
 from controller.config import (
     Config,
     ConfigError,
+    LimitsConfig,
     config_from_dict,
     config_to_toml,
     load_config,
 )
+from drivers.config import FieldError
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -57,9 +62,9 @@ def test_file_overrides_defaults(tmp_path: Path) -> None:
         ("[sim]\nseed = 1.5\n", "'sim.seed' must be an integer"),
         ("[cameras.rgbd]\ntype = 'webcam'\n", "'cameras.rgbd.type' must be one of"),
         ("[limits]\nworkspace_min_world = [0, 0]\n", "array of 3 values"),
-        ("[limits]\ncontact_force_n = 50.0\n", "bad value in [limits]"),
-        ("[cameras.rgbd]\ntilt_deg = 95\n", "tilt_deg must be in (0, 90)"),
-        ("[robot]\nid = 'a/b'\n", "bad value in [robot]"),
+        ("[limits]\ncontact_force_n = 50.0\n", "'limits.contact_force_n' must be below"),
+        ("[cameras.rgbd]\ntilt_deg = 95\n", "'cameras.rgbd.tilt_deg' must be in (0, 90)"),
+        ("[robot]\nid = 'a/b'\n", "'robot.id' must be a non-empty key-expression chunk"),
         ("[robot]\narm = 3\n", "[robot.arm] must be a table"),
         ("[logging]\nrerun = 'yes'\n", "'logging.rerun' must be true or false"),
         ("this is = = not toml", "not valid TOML"),
@@ -72,6 +77,109 @@ def test_bad_config_files_name_the_key(tmp_path: Path, text: str, message: str) 
         load_config(path)
     assert message in str(error.value)
     assert str(path) in str(error.value)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        # The probe's failures: each passed validation before.
+        ("[limits]\nmax_force_n = nan\n", "'limits.max_force_n' must be a finite number"),
+        ("[limits]\nmax_force_n = inf\n", "'limits.max_force_n' must be a finite number"),
+        (
+            "[limits]\nworkspace_min_world = [nan, -0.4, 0.0]\n",
+            "'limits.workspace_min_world' must be a finite number",
+        ),
+        (
+            "[limits]\nmax_tcp_speed_m_s = inf\napproach_speed_m_s = nan\n",
+            "must be a finite number",
+        ),
+        ("[limits]\napproach_speed_m_s = nan\n", "'limits.approach_speed_m_s' must be a finite"),
+        ("[limits]\nmax_force_n = -1.0\n", "'limits.max_force_n' must be positive"),
+        # Ordered limits, each naming the key that breaks the order.
+        ("[limits]\napproach_speed_m_s = 0.3\n", "'limits.approach_speed_m_s' must be at most"),
+        (
+            "[limits]\napproach_contact_force_n = 6.0\n",
+            "'limits.approach_contact_force_n' must be at most contact_force_n",
+        ),
+        ("[limits]\ncontact_force_n = 40.0\n", "'limits.contact_force_n' must be below"),
+        (
+            "[limits]\nworkspace_max_world = [0.4, 0.4, -0.1]\n",
+            "'limits.workspace_min_world' must be below workspace_max_world",
+        ),
+        ("[limits]\ntable_clearance_m = 0.0\n", "'limits.table_clearance_m' must be positive"),
+        # The device sections (drivers/config.py) too.
+        ("[gripper]\nmax_force_n = -5.0\n", "'gripper.max_force_n' must be positive"),
+        ("[gripper]\ntcp_port = 70000\n", "'gripper.tcp_port' must be in 1..65535"),
+        ("[robot.arm]\nconnect_attempts = 0\n", "'robot.arm.connect_attempts' must be at least"),
+        ("[sensor]\nimage_noise_sigma = -1.0\n", "'sensor.image_noise_sigma' must be >= 0"),
+        ("[sim]\ntable_size_m = [1.2, 0.0]\n", "'sim.table_size_m' must be positive"),
+        ("[motion]\nstandoff_m = 0.07\n", "'motion.standoff_m' must be below"),
+        ("[models]\nprior = '../../etc/passwd'\n", "'models.prior' must be 1..64 letters"),
+        ("[messaging]\nlisten = ['garbage']\n", "'messaging.listen' endpoint 'garbage'"),
+        (
+            "[messaging]\nconnect = ['tcp/127.0.0.1:99999']\n",
+            "'messaging.connect' endpoint 'tcp/127.0.0.1:99999' needs <host>:<port>",
+        ),
+    ],
+)
+def test_unsafe_limits_are_refused_naming_the_key(tmp_path: Path, text: str, message: str) -> None:
+    path = tmp_path / "limits.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as error:
+        load_config(path)
+    assert message in str(error.value)
+    assert "bad value in" not in str(error.value)  # the key, not only the section
+
+
+def _float_keys(cls: type, prefix: str = "") -> list[tuple[str, bool]]:
+    """Dotted keys of every float and float-vector field of a config section, recursively."""
+    keys = []
+    for name, hint in typing.get_type_hints(cls).items():
+        key = f"{prefix}.{name}" if prefix else name
+        args = typing.get_args(hint)
+        if dataclasses.is_dataclass(hint):
+            keys += _float_keys(hint, key)
+        elif hint is float or (args and all(a is float for a in args)):
+            keys.append((key, hint is not float))
+    return keys
+
+
+@pytest.mark.parametrize("bad", ["nan", "inf", "-inf"])
+def test_every_float_of_every_section_must_be_finite(bad: str) -> None:
+    keys = _float_keys(Config)
+    assert len(keys) > 60  # the walk finds the tree's floats
+    defaults = tomllib.loads(config_to_toml(Config()))
+    for key, is_vector in keys:
+        *sections, name = key.split(".")
+        data: dict = {}
+        table = data
+        for section in sections:
+            table = table.setdefault(section, {})
+        value = float(bad)
+        if is_vector:
+            default = defaults
+            for part in key.split("."):
+                default = default[part]
+            table[name] = [value, *default[1:]]
+        else:
+            table[name] = value
+        with pytest.raises(ConfigError, match=f"'{key}' must be a finite number"):
+            config_from_dict(data)
+
+
+def test_limits_built_in_code_refuse_nan_and_inf() -> None:
+    """The checks behind the validator hold for configs built in code (no TOML) too."""
+    for field, value in [
+        ("max_force_n", math.nan),
+        ("contact_force_n", math.nan),
+        ("max_tcp_speed_m_s", math.inf),
+        ("approach_speed_m_s", math.nan),
+        ("workspace_min_world", (math.nan, -0.4, 0.0)),
+        ("workspace_max_world", (math.inf, 0.4, 0.6)),
+    ]:
+        with pytest.raises(FieldError) as error:
+            dataclasses.replace(LimitsConfig(), **{field: value})
+        assert error.value.field in (field, "workspace_min_world")
 
 
 def test_missing_config_file(tmp_path: Path) -> None:

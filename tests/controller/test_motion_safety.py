@@ -8,7 +8,7 @@ import pytest
 import trimesh
 
 from controller.config import Config, LimitsConfig
-from controller.motion.planner import MotionPlanner
+from controller.motion.planner import MotionPlanner, at_pose, home_pose_world_tcp
 from controller.motion.safety import (
     Obstacles,
     SafetyViolation,
@@ -143,10 +143,50 @@ def test_far_targets_detour_above_the_object_and_near_ones_move_directly() -> No
 
 
 def test_unreachable_touch_is_rejected_before_moving() -> None:
+    """Far out, the workspace box refuses the path first; inside the box but beyond the arm's
+    reach (the far top corner, 1 m from the base), the inverse kinematics does."""
     plan = planner()
-    touch = plan.touch_geometry((0.0, 0.9, 0.05), (0.0, -1.0, 0.0))  # far beyond the reach
+    start = tool_down_at(0.0, -0.2, 0.4)
+    touch = plan.touch_geometry((0.0, 0.9, 0.05), (0.0, -1.0, 0.0))
+    with pytest.raises(SafetyViolation, match=r"TCP \[.*\] m outside the workspace box"):
+        plan.plan_transit(start, HOME, touch, Obstacles.none())
+    touch = plan.touch_geometry((0.25, 0.3, 0.4), (1.0, 0.0, 0.0))
+    check_workspace(touch.pose_world_tcp_start, CONFIG.limits)  # its approach start is inside
+    with pytest.raises(SafetyViolation, match=r"out of the arm's reach \(no IK solution\)"):
+        plan.plan_transit(start, HOME, touch, Obstacles.none())
+
+
+def test_a_retreat_goes_back_to_where_the_motion_started_or_nowhere() -> None:
+    """Never to a pose relative to where the arm is: faults in a row must not walk it away."""
+    plan = planner()
+    pose = tool_down_at(0.0, -0.2, 0.3)
+    joints = check_reachable(pose, POSE_WORLD_BASE, HOME)
+    assert plan.plan_retreat(pose, joints, back_to_world_tcp=None) == []
+    assert plan.plan_retreat(pose, joints, back_to_world_tcp=pose.copy()) == []
+    back = tool_down_at(0.0, -0.25, 0.35)
+    (retreat,) = plan.plan_retreat(pose, joints, back_to_world_tcp=back)
+    assert np.allclose(retreat.pose_world_tcp, back)
+
+
+def test_the_way_home_is_checked_and_ends_at_home() -> None:
+    plan = planner()
+    home = home_pose_world_tcp(ArmConfig())
+    mesh = trimesh.creation.cylinder(
+        radius=0.04, height=0.1, transform=make_transform(None, (0, 0, 0.05))
+    )
+    obstacles = box_obstacles(mesh)
+    assert plan.plan_home(home, HOME, home, obstacles) == []
+    # From beside the object, as a fault on an approach leaves the arm.
+    touch = plan.touch_geometry((0.0, -0.04, 0.06), (0.0, 1.0, 0.0))
+    start = touch.pose_world_tcp_start
+    joints = check_reachable(start, POSE_WORLD_BASE, HOME)
+    way = plan.plan_home(start, joints, home, obstacles)
+    assert at_pose(way[-1].pose_world_tcp, home)
+    assert way[0].pose_world_tcp[2, 3] > start[2, 3]  # up first, not across the object
+    # An estimate reaching up to the tool at home: no way home is allowed.
+    tall = trimesh.creation.box((0.1, 0.1, 0.5), transform=make_transform(None, (0, 0, 0.25)))
     with pytest.raises(SafetyViolation):
-        plan.plan_transit(tool_down_at(0.0, -0.2, 0.4), HOME, touch, Obstacles.none())
+        plan.plan_home(start, joints, home, box_obstacles(tall, 0.01))
 
 
 async def test_planned_touch_runs_on_the_sim_arm_without_protective_stop() -> None:

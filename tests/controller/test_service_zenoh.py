@@ -5,14 +5,17 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import json
+import logging
 import subprocess
 import sys
 from collections.abc import AsyncIterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from controller.config import Config, MessagingConfig
+from controller.messaging import EndpointError, open_session
 from controller.service import TouchshapeService, decode_shape
 from tests.fakes.perception import make_cylinder_perception
 from tests.fakes.zenoh_client import Client, free_port
@@ -87,6 +90,8 @@ async def test_remote_session_end_to_end(served) -> None:
         (json.dumps({"max_touches": "3"}), "integer"),
         (json.dumps({"policy": "greedy"}), "one of"),
         (json.dumps({"touches": 3}), "unknown key 'touches'"),
+        ('{"max_touches": ' + "9" * 5000 + "}", "'max_touches' must be an integer in 1..100"),
+        ('{"max_touches": 2, "max_touches": 3}', "duplicate key 'max_touches'"),
     ],
 )
 async def test_bad_requests_get_error_replies(served, body, message) -> None:
@@ -99,6 +104,56 @@ async def test_bad_requests_get_error_replies(served, body, message) -> None:
         assert (await client.aquery("status"))[0]["state"] == "idle"
     finally:
         client.close()
+
+
+async def test_refused_requests_do_not_move_the_arm(served) -> None:
+    """Unknown, path-like and huge prior names are refused before a session starts: no fault,
+    no retreat, the TCP where it was, and a short reply."""
+    service, client_config = served
+    assert service.devices is not None
+    before = (await service.devices.arm.state()).pose_base_tcp
+    client = await asyncio.to_thread(Client, client_config)
+    try:
+        for body, field in [
+            ({"prior": "nosuchprior"}, "'prior' must be one of 'box', 'general'"),
+            ({"prior": "../../etc/passwd"}, "'prior' must be a name"),
+            ({"prior": "x" * 1_000_000}, "request is too large"),
+            ({"prior": "x" * 10_000}, "'prior' must be a name"),
+            ({"prior": "general", "max_touches": 0}, "'max_touches'"),
+        ]:
+            replies = await client.aquery("explore", json.dumps(body))
+            assert len(replies) == 1 and replies[0]["accepted"] is False
+            assert field in replies[0]["error"]
+            assert len(json.dumps(replies[0])) < 300  # no echo of the input
+        assert service.session is None and not service.busy
+        after = (await service.devices.arm.state()).pose_base_tcp
+        np.testing.assert_array_equal(after, before)
+        assert not any(service.logs_dir.iterdir())  # no session folder, no recording
+        # The service carries on: a valid request with a known prior runs.
+        reply = (await client.aquery("explore", json.dumps({"prior": "box", "max_touches": 1})))[0]
+        assert reply["accepted"] is True
+        await wait_for(lambda: "result" in client.messages)
+        assert client.messages["result"][0]["state"] == "done"
+    finally:
+        client.close()
+
+
+async def test_taken_port_fails_before_devices_connect(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger="controller.service")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    holder = await asyncio.to_thread(open_session, MessagingConfig(listen=(endpoint,)))
+    try:
+        config = dataclasses.replace(Config(), messaging=MessagingConfig(listen=(endpoint,)))
+        service = TouchshapeService(config, make_cylinder_perception, logs_dir=tmp_path)
+        with pytest.raises(EndpointError) as error:
+            await service.serve(asyncio.Event())
+        assert endpoint in str(error.value) and "\n" not in str(error.value)
+        assert service.devices is None and service.perception is None
+        assert "connecting the devices" not in caplog.text and "homing" not in caplog.text
+    finally:
+        await asyncio.to_thread(holder.close)
 
 
 async def test_busy_and_idle_abort(served) -> None:
@@ -115,6 +170,8 @@ async def test_busy_and_idle_abort(served) -> None:
         assert client.messages["result"][0]["state"] == "aborted"
         status = (await client.aquery("status"))[0]
         assert status["busy"] is False
+        # Idle again: nothing is aborted, and the finished session is not named.
+        assert (await client.aquery("abort"))[0] == {"aborted": False, "session": None}
     finally:
         client.close()
 

@@ -8,12 +8,18 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import trimesh
 
 from controller.config import Config
 from controller.request import ExploreRequest
 from controller.service import TouchshapeService
-from tests.fakes.devices import StaleCamera, TimingOutGripper
+from tests.fakes.devices import (
+    StaleCamera,
+    TimingOutGripper,
+    assert_went_back_to,
+    record_arm_moves,
+)
 from tests.fakes.perception import CylinderPerception
 
 
@@ -38,8 +44,8 @@ def assert_recording_verifies(summary: dict) -> None:
 
 
 async def test_protective_stop_mid_session(tmp_path: Path) -> None:
-    """An obstacle the camera did not see (a bar across the arm's way down to its first
-    approach) stops the arm; it recovers and goes back the way it came."""
+    """An obstacle the camera did not see (a bar across the arm's way to its first approach)
+    stops the arm; it recovers and goes back to where the stopped move began."""
     seen: dict = {}
 
     def perception(cfg: Config, devices):
@@ -53,13 +59,22 @@ async def test_protective_stop_mid_session(tmp_path: Path) -> None:
         bar = trimesh.creation.box((0.2, 0.03, 0.02))
         bar.apply_translation((0.0, -0.17, 0.25))
         world.object_mesh_world = trimesh.util.concatenate([world.object_mesh_world, bar])
+        moves = record_arm_moves(seen["devices"])
         summary, states = await run_session(service)
         arm = await service.devices.arm.state()  # type: ignore[union-attr]
     finally:
         await service.stop()
     assert states[-2:] == ["fault", "idle"]
     assert summary["state"] == "fault" and "ProtectiveStop" in summary["error"]
+    assert "retreat failed" not in summary["error"]
     assert not arm.protective_stopped and not arm.is_moving
+    stopped = [m for m in moves if m.error is not None]
+    assert len(stopped) == 1 and "ProtectiveStop" in stopped[0].error
+    # It had gone some way before the bar stopped it; then back to where that move began.
+    start = stopped[0].start_world[:3, 3]
+    assert np.linalg.norm(stopped[0].end_world[:3, 3] - start) > 0.02
+    assert moves[-1] is not stopped[0]
+    assert_went_back_to(moves, world.pose_world_tcp(), start)
     assert_recording_verifies(summary)
     assert Path(summary["artifacts"]["summary"]).exists()
 

@@ -76,11 +76,15 @@ async def move_l(arm: SimUR5, target: np.ndarray, speed: float = 0.25, acc: floa
 
 
 async def record_while(task: asyncio.Task, arm: SimUR5) -> list[ArmState]:
-    """States seen at every yield of the event loop until ``task`` is done."""
+    """Every state the arm passes through until ``task`` is done. Polled every millisecond, not
+    at every yield: each control step computes in a worker thread, which a loop spinning on
+    ``sleep(0)`` would starve of the GIL."""
     states: list[ArmState] = []
     while not task.done():
-        states.append(await arm.state())
-        await asyncio.sleep(0)
+        state = await arm.state()
+        if not states or not np.array_equal(state.joints_rad, states[-1].joints_rad):
+            states.append(state)
+        await asyncio.sleep(0.001)
     return states
 
 

@@ -114,11 +114,24 @@ async def test_stop_ends_a_move_early(world, gel) -> None:
     gripper = await homed_gripper(world, gel)
     await gripper.move(0.0, speed_m_s=0.1, force_limit_n=80.0, timeout_s=5)
     move = asyncio.create_task(gripper.move(0.1, speed_m_s=0.01, force_limit_n=80, timeout_s=20))
-    for _ in range(20):
-        await asyncio.sleep(0)
+    async with asyncio.timeout(30):  # planned in a worker thread, then moving
+        while world.gripper_width_m == 0.0:
+            await asyncio.sleep(0)
     await gripper.stop()
     state = await move
     assert 0.0 < state.width_m < 0.1 and not state.is_moving
+
+
+async def test_stop_while_the_move_is_planned_keeps_the_fingers_still(world, gel) -> None:
+    gripper = await homed_gripper(world, gel)
+    await gripper.move(0.0, speed_m_s=0.1, force_limit_n=80.0, timeout_s=5)
+    move = asyncio.create_task(gripper.move(0.1, speed_m_s=0.01, force_limit_n=80, timeout_s=20))
+    await asyncio.sleep(0)  # the move is planning in its worker thread: busy already
+    with pytest.raises(MotionRejectedError, match="busy"):
+        await gripper.move(0.05, speed_m_s=0.01, force_limit_n=80, timeout_s=20)
+    await gripper.stop()
+    state = await move
+    assert state.width_m == 0.0 and not state.is_moving and not state.blocked
 
 
 async def test_bad_commands_are_rejected(world, gel) -> None:

@@ -21,6 +21,7 @@ from controller.perception.protocol import (
 from controller.request import ExploreRequest
 from drivers.base import RGBDFrame
 from drivers.factory import Devices
+from models.prior.shape_prior import available_priors
 
 
 class CylinderPerception:
@@ -30,6 +31,11 @@ class CylinderPerception:
         camera_position = config.cameras.rgbd.pose_world_camera()[:3, 3]
         self.grid = config.voxel_grid.grid(tuple(camera_position))
         self.reconstruct_calls = 0
+        self.weights_dir = config.models.weights_dir
+
+    def prior_names(self) -> frozenset[str]:
+        # The names the learned perception would accept; the cylinder does not depend on them.
+        return frozenset(available_priors(self.weights_dir or None))
 
     def reconstruct(self, frame: RGBDFrame, request: ExploreRequest) -> ShapeEstimate:
         self.reconstruct_calls += 1
@@ -63,7 +69,7 @@ class CylinderPerception:
     def interpret(self, measurement: TouchMeasurement) -> TouchOutcome:
         pad = measurement.pose_world_pad
         points = pad[:3, 3][None] if measurement.contact else np.zeros((0, 3))
-        return TouchOutcome(measurement, points, None, constraints=None)
+        return TouchOutcome(measurement, points, None, touch=None)
 
     def refine(
         self, estimate: ShapeEstimate, outcomes: list[TouchOutcome], request: ExploreRequest

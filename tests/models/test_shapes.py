@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from models.procedural import CATEGORIES, make_shape, object_mesh
-from models.shapes import ShapeError, fits_extent, load_mesh_file
+from models.shapes import ShapeError, check_explorable, fits_extent, load_mesh_file
 
 SEEDS = (0, 1, 2)
 
@@ -204,3 +204,97 @@ def test_fits_extent_limits() -> None:
     assert not fits_extent(trimesh.creation.box((0.1, 0.21, 0.1)))
     assert not fits_extent(trimesh.creation.box((0.1, 0.1, 0.26)))
     assert fits_extent(trimesh.creation.box((0.1, 0.1, 0.26)), max_height_m=0.3)
+
+
+def _open_box(size_m: float) -> trimesh.Trimesh:
+    """A box without its top (two triangles missing): a hole trimesh can fill."""
+    box = trimesh.creation.box((size_m,) * 3)
+    return trimesh.Trimesh(box.vertices, box.faces[box.face_normals[:, 2] < 0.9])
+
+
+def _open_cylinder() -> trimesh.Trimesh:
+    """A cup without a lid: a 32-sided hole, which trimesh cannot fill."""
+    cylinder = trimesh.creation.cylinder(radius=0.03, height=0.08, sections=32)
+    return trimesh.Trimesh(cylinder.vertices, cylinder.faces[cylinder.face_normals[:, 2] < 0.9])
+
+
+def test_a_file_whose_header_lies_is_refused_in_words(tmp_path: Path) -> None:
+    """A PLY header promising vertex properties y and z only: the reason, not KeyError('x')."""
+    path = tmp_path / "liar.ply"
+    path.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float y\nproperty float z\n"
+        "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+        "0 0\n1 0\n0 1\n3 0 1 2\n"
+    )
+    with pytest.raises(ShapeError) as refused:
+        load_mesh_file(path)
+    message = str(refused.value)
+    assert message == (
+        f"cannot read mesh file {path}: the header does not match the data (no field 'x')"
+    )
+    truncated = tmp_path / "truncated.ply"
+    truncated.write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 300\nproperty float x\n"
+        b"property float y\nproperty float z\nelement face 1\n"
+        b"property list uchar int vertex_indices\nend_header\n\x00\x00"
+    )
+    with pytest.raises(ShapeError, match=r"^cannot read mesh file .*truncated\.ply: \w+Error: "):
+        load_mesh_file(truncated)
+
+
+@pytest.mark.parametrize(
+    ("mesh", "reason"),
+    [
+        (
+            trimesh.creation.box((3.0, 3.0, 3.0)),
+            "is too large for the workspace: 3.000 x 3.000 x 3.000 m, at most 0.260 m on each"
+            " side fits",
+        ),
+        (
+            trimesh.creation.box((1e-5, 1e-5, 1e-5)),
+            "is too small to touch: 0.01 x 0.01 x 0.01 mm, its largest side must be at least 19 mm",
+        ),
+        (
+            trimesh.Trimesh([[0, 0, 0], [0.05, 0, 0], [0, 0.05, 0]], [[0, 1, 2]]),
+            "is not a closed solid (3 open edges) and its holes could not be filled",
+        ),
+        (_open_cylinder(), "is not a closed solid (32 open edges)"),
+    ],
+    ids=["3 m box", "10 um box", "one triangle", "open cylinder"],
+)
+def test_objects_the_bench_cannot_explore_are_refused_in_one_line(
+    tmp_path: Path, mesh: trimesh.Trimesh, reason: str
+) -> None:
+    path = tmp_path / "object.stl"
+    mesh.export(path)
+    loaded = load_mesh_file(path)
+    with pytest.raises(ShapeError) as refused:
+        check_explorable(loaded, str(path), min_extent_m=0.019, max_extent_m=0.26)
+    message = str(refused.value)
+    assert message.startswith(f"object {path} {reason}") and "\n" not in message
+
+
+def test_an_object_with_a_hole_that_can_be_filled_is_taken_with_a_warning(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = tmp_path / "open_box.stl"
+    _open_box(0.06).export(path)
+    mesh = load_mesh_file(path)
+    with caplog.at_level("WARNING", logger="models.shapes"):
+        check_explorable(mesh, str(path), min_extent_m=0.019, max_extent_m=0.26)
+    assert mesh.is_volume
+    assert [r.getMessage() for r in caplog.records] == [
+        f"object {path} was not a closed solid: its holes were filled"
+    ]
+    closed = tmp_path / "box.stl"
+    trimesh.creation.box((0.06, 0.06, 0.06)).export(closed)
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="models.shapes"):
+        check_explorable(load_mesh_file(closed), str(closed), min_extent_m=0.019)
+    assert caplog.records == []
+
+
+def test_every_library_object_is_explorable(shapes: dict[tuple[str, int], trimesh.Trimesh]) -> None:
+    """The limits the bench uses (the 19 mm gel pad, the 0.26 m voxel grid) take them all."""
+    for (category, _), mesh in shapes.items():
+        check_explorable(mesh, category, min_extent_m=0.019, max_extent_m=0.26)

@@ -1,0 +1,59 @@
+"""Ground-truth scores of a session's shape estimates: only a simulated bench knows the true
+shape, so a session scores only when the devices share a ``SimWorld`` (a real robot's session
+has none and gets no scores, rather than scores against an object that is not there)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import TYPE_CHECKING
+
+import trimesh
+
+from controller.perception.protocol import ShapeEstimate
+from controller.recording import SessionRecorder
+from models.metrics import mesh_metrics
+
+if TYPE_CHECKING:
+    from drivers.sim.world import SimWorld
+
+log = logging.getLogger(__name__)
+
+SCORES = ("chamfer_mm", "fscore_2mm", "fscore_5mm")
+"""Ground-truth scores of every estimate on the simulated bench (``models.metrics``)."""
+
+
+class GroundTruthScores:
+    """Scores every estimate against the simulated object in the background (no work a real
+    robot would wait for); ``collect`` lists them in estimate order."""
+
+    def __init__(self, world: SimWorld, recorder: SessionRecorder) -> None:
+        self.world = world
+        self.recorder = recorder
+        self._tasks: list[asyncio.Task[dict[str, float]]] = []
+
+    def add(self, estimate: ShapeEstimate, touch: int) -> None:
+        mesh = self.world.object_mesh_world
+        self._tasks.append(asyncio.create_task(self._score(estimate, mesh, touch)))
+
+    async def _score(
+        self, estimate: ShapeEstimate, mesh: trimesh.Trimesh, touch: int
+    ) -> dict[str, float]:
+        scores = await asyncio.to_thread(mesh_metrics, estimate.probabilities, estimate.grid, mesh)
+        values = {name: float(getattr(scores, name)) for name in SCORES}
+        for name, value in values.items():
+            self.recorder.log_metric(name, value, touch=touch)
+        return values
+
+    async def collect(self) -> dict[str, list[float]]:
+        """Wait for the scores; one list per score name, in estimate order."""
+        results = await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._tasks.clear()
+        metrics: dict[str, list[float]] = {}
+        for result in results:
+            if isinstance(result, BaseException):
+                log.error("scoring an estimate failed: %r", result)
+                continue
+            for name, value in result.items():
+                metrics.setdefault(name, []).append(round(value, 3))
+        return metrics
