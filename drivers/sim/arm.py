@@ -23,7 +23,6 @@ the world on the event loop after it, so a cancelled move commits nothing more.
 
 from __future__ import annotations
 
-import asyncio
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -254,7 +253,7 @@ class SimUR5(Arm):
                     raise DeviceNotConnectedError("arm closed during a move")
                 joints = joints_at(step * period_s)
                 self._check_joint_step(joints, period_s)
-                pose_base_flange, collision = await asyncio.to_thread(
+                pose_base_flange, collision = await self._world.compute(
                     self._flange_and_collision, joints, self._world.gripper_width_m
                 )
                 if not self._connected:

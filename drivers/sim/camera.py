@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
-
 import numpy as np
 
 from drivers.base import DeviceNotConnectedError, RGBDCamera, RGBDFrame
@@ -31,7 +29,7 @@ class SimKinect(RGBDCamera):
 
     async def connect(self) -> None:
         # Rendering takes tens of milliseconds: keep it off the event loop.
-        self._clean = await asyncio.to_thread(
+        self._clean = await self.world.compute(
             render,
             self.world.scene,
             self.intrinsics,
@@ -52,7 +50,7 @@ class SimKinect(RGBDCamera):
         if self._clean is None:
             raise DeviceNotConnectedError("simulated camera is not connected")
         # The depth noise takes tens of milliseconds: a worker thread's, not the loop's.
-        return await asyncio.to_thread(self._frame, self._clean, self.world.clock.now_s)
+        return await self.world.compute(self._frame, self._clean, self.world.clock.now_s)
 
     def _frame(self, clean: RenderOutput, timestamp_s: float) -> RGBDFrame:
         depth = clean.depth_m

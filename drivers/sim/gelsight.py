@@ -3,8 +3,6 @@
 
 from __future__ import annotations
 
-import asyncio
-
 import numpy as np
 
 from drivers.base import DeviceNotConnectedError, TactileFrame, TactileSensor
@@ -51,7 +49,7 @@ class SimGelSight(TactileSensor):
     async def read(self, *, timeout_s: float = 1.0) -> TactileFrame:
         self._require_connected()
         pose_world_pad, now_s = self.world.pose_world_pad(), self.world.clock.now_s
-        image = await asyncio.to_thread(self._image, pose_world_pad)
+        image = await self.world.compute(self._image, pose_world_pad)
         return TactileFrame(image_bgr=image, timestamp_s=now_s)
 
     async def reference(self, *, timeout_s: float = 5.0) -> TactileFrame:
@@ -59,7 +57,7 @@ class SimGelSight(TactileSensor):
         self._require_connected()
         now_s = self.world.clock.now_s
         # Ten renders take a few hundred milliseconds: a worker thread's, not the loop's.
-        image = await asyncio.to_thread(self._reference_image)
+        image = await self.world.compute(self._reference_image)
         return TactileFrame(image_bgr=image, timestamp_s=now_s)
 
     def _reference_image(self) -> np.ndarray:

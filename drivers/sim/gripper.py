@@ -119,7 +119,7 @@ class SimWSG50(Gripper):
         self._moving = True
         try:
             start_m = self.world.gripper_width_m
-            stop = await asyncio.to_thread(
+            stop = await self.world.compute(
                 self._plan, self.world.pose_world_tcp(), start_m, width_m, force_limit_n
             )
             duration_s = abs(stop.width_m - start_m) / speed_m_s
@@ -157,7 +157,7 @@ class SimWSG50(Gripper):
         moving, blocked, now_s = self._moving, self._blocked, self.world.clock.now_s
         force = self._stall_force_n
         if force is None:
-            force = await asyncio.to_thread(self._gel_force_n, pose_world_tcp, width)
+            force = await self.world.compute(self._gel_force_n, pose_world_tcp, width)
         return GripperState(
             width_m=width, force_n=force, is_moving=moving, blocked=blocked, timestamp_s=now_s
         )

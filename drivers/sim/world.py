@@ -16,7 +16,10 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 import trimesh
@@ -36,6 +39,8 @@ from models.render import Scene, SceneObject, make_table
 from models.shapes import check_explorable
 
 log = logging.getLogger(__name__)
+
+_T = TypeVar("_T")
 
 COLLISION_LINE_SPACING_M = 0.004
 """Spacing of the probe lines on each tool box face: thinner object slivers could slip through."""
@@ -99,8 +104,9 @@ class SimWorld:
         self.scene_mesh_world = trimesh.util.concatenate(
             [self.object_mesh_world, self.table_mesh_world]
         )
-        # Worker threads query these meshes concurrently (device simulation, background
-        # scores): build trimesh's lazy caches now, so the threads only read them.
+        self._compute_lock = threading.Lock()
+        # Background scores may query these meshes from other threads: build trimesh's lazy
+        # caches now, so those threads only read them.
         for mesh in (self.object_mesh_world, self.scene_mesh_world):
             mesh.ray.intersects_any([[0.0, 0.0, 10.0]], [[0.0, 0.0, -1.0]])
             _ = mesh.face_normals, mesh.area_faces
@@ -110,6 +116,17 @@ class SimWorld:
         self.joints_rad = np.asarray(arm.home_joints_rad, dtype=float)
         self.pose_base_flange = np.eye(4)  # set by the arm from forward kinematics on connect
         self.gripper_width_m = gripper.stroke_m / 2
+
+    async def compute(self, function: Callable[..., _T], *args: object) -> _T:
+        """Run a device simulation's computation in a worker thread, one at a time: Embree's
+        ray casting and trimesh's lazy structures are not safe to enter from two threads at
+        once (a first-run race there hung the WSG emulator's exit)."""
+
+        def locked() -> _T:
+            with self._compute_lock:
+                return function(*args)
+
+        return await asyncio.to_thread(locked)
 
     @classmethod
     def from_config(
