@@ -19,7 +19,7 @@ import logging
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 import trimesh
@@ -117,14 +117,15 @@ class SimWorld:
         self.pose_base_flange = np.eye(4)  # set by the arm from forward kinematics on connect
         self.gripper_width_m = gripper.stroke_m / 2
 
-    async def compute(self, function: Callable[..., _T], *args: object) -> _T:
-        """Run a device simulation's computation in a worker thread, one at a time: Embree's
-        ray casting and trimesh's lazy structures are not safe to enter from two threads at
-        once (a first-run race there hung the WSG emulator's exit)."""
+    async def compute(self, function: Callable[..., _T], *args: Any, **kwargs: Any) -> _T:
+        """Run a device simulation's computation in a worker thread, one at a time: trimesh's
+        lazily built structures and Embree's scenes are not documented as safe to enter from
+        two threads at once, and one at a time keeps the simulation's results independent of
+        thread timing."""
 
         def locked() -> _T:
             with self._compute_lock:
-                return function(*args)
+                return function(*args, **kwargs)
 
         return await asyncio.to_thread(locked)
 

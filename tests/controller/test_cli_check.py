@@ -29,6 +29,12 @@ CONTACT_WIDTH_M = 0.02  # small openings keep the simulated contact planning che
 EMULATOR_COMMAND = [sys.executable, "-m", "controller.cli.main", "sim", "wsg"]
 
 
+def _interruptible() -> None:
+    """Ctrl-C reaches the child as it does in a terminal: a shell's background job (how a test
+    run may be started) ignores SIGINT, and a child inherits that."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.fixture
 def emulator_tcp() -> Iterator[tuple[str, int]]:
     """A WSG 50 emulator on its own event loop in a thread (the CLI runs its own loop)."""
@@ -97,6 +103,7 @@ def test_cli_sim_wsg_serves_until_interrupted() -> None:
         [*EMULATOR_COMMAND, "--tcp", "127.0.0.1:0", "--contact-mm", "20"],
         stdout=subprocess.PIPE,
         text=True,
+        preexec_fn=_interruptible,
     )
     try:
         assert process.stdout is not None

@@ -133,6 +133,11 @@ async def test_realsense_without_a_camera() -> None:
     assert lag < MAX_LAG_S
 
 
+def _nice_and_interruptible() -> None:
+    os.nice(10)
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 async def test_wsg_session_against_the_emulator_in_its_own_process() -> None:
     """Connect, home, move, touch and close with the emulator in another process, so the
     ticker measures the driver alone."""
@@ -149,7 +154,8 @@ async def test_wsg_session_against_the_emulator_in_its_own_process() -> None:
         stdout=asyncio.subprocess.PIPE,
         # The emulator's contact planning is CPU-heavy: on two cores, let it yield to the
         # process under test, so the ticker measures the driver, not the scheduler.
-        preexec_fn=lambda: os.nice(10),
+        # SIGINT as in a terminal (a shell's background job, which a test run may be, ignores it).
+        preexec_fn=_nice_and_interruptible,
     )
     try:
         assert process.stdout is not None
