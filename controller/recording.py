@@ -94,6 +94,7 @@ class SessionRecorder:
         self.artifacts_dir = logs_dir / session_id
         self.artifacts_dir.mkdir(parents=True, exist_ok=True)
         self.touches_path = self.artifacts_dir / "touches.jsonl"
+        self.motions_path = self.artifacts_dir / "motions.jsonl"
         self.blueprint_path = save_blueprint(logs_dir)
         if request is not None:  # for the summary of a session a crash ends
             write_json_atomically(self.artifacts_dir / REQUEST_FILE, request)
@@ -106,6 +107,7 @@ class SessionRecorder:
         # Held while the session records (the kernel drops it when the process dies): start-up
         # recovery leaves a session alone that another process is still recording.
         fcntl.flock(self._touches_file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        self._motions_file = self.motions_path.open("a", encoding="utf-8")
 
     # --- timelines ------------------------------------------------------------------------------
 
@@ -237,6 +239,12 @@ class SessionRecorder:
         self._touches_file.flush()
         os.fsync(self._touches_file.fileno())
 
+    def log_motion(self, record: dict[str, Any]) -> None:
+        """One arm motion (its label, start and end flange poses, speed) appended to
+        motions.jsonl: what the arm did, for review and the safety benchmark."""
+        self._motions_file.write(json.dumps(record) + "\n")
+        self._motions_file.flush()
+
     def log_tactile(
         self, image_bgr: NDArray[np.uint8], height_map_mm: NDArray[np.floating] | None
     ) -> None:
@@ -274,6 +282,7 @@ class SessionRecorder:
     def close(self) -> None:
         """Flush and close the files; the recorder records nothing after this."""
         self._touches_file.close()
+        self._motions_file.close()
         if self._rec is None:
             return
         self._rec.flush()

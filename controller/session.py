@@ -13,18 +13,13 @@ import logging
 import time
 from collections.abc import Awaitable, Callable
 from functools import partial
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 
 from controller.config import Config
-from controller.motion.planner import (
-    MotionPlanner,
-    TouchGeometry,
-    Waypoint,
-    at_pose,
-    home_pose_world_tcp,
-)
+from controller.motion.executor import HomeError, MotionExecutor
+from controller.motion.planner import MotionPlanner, TouchGeometry, Waypoint, home_pose_world_tcp
 from controller.motion.safety import Obstacles, SafetyViolation, check_force, check_reachable
 from controller.perception.protocol import (
     Perception,
@@ -38,10 +33,10 @@ from controller.request import ExploreRequest
 from controller.scoring import GroundTruthScores
 from controller.session_times import SessionTimes
 from controller.states import STEP_TIMEOUT_S, TRANSITIONS, State
-from drivers.base import ArmState, DeviceError, TactileFrame
+from drivers.base import DeviceError, TactileFrame
 from drivers.factory import Devices
 from drivers.tool import ToolModel
-from models.geometry import invert_transform, matrix_to_ur_pose, ur_pose_to_matrix
+from models.geometry import ur_pose_to_matrix
 
 log = logging.getLogger(__name__)
 
@@ -51,16 +46,6 @@ CONVERGED_AFTER_UNCHANGED_TOUCHES = 2
 shape has stopped changing."""
 REJECTED_TARGET_RADIUS_M = 0.01
 """Targets within this distance of one the planner refused are not proposed again."""
-ACCELERATION_M_S2 = 0.5
-APPROACH_STEP_M = 0.0005
-"""Arm travel between force readings on an approach. On a face tilted to the pad, or an edge or
-corner meeting the gel, the force grows slowly: the gel must show ``approach_contact_force_n``
-before it has given the 1.5 mm that bring the rigid window behind it onto the object."""
-APPROACH_FINE_STEP_M = 0.0001
-APPROACH_FINE_FORCE_FRACTION = 0.25
-"""Once the force reaches this fraction of ``approach_contact_force_n`` the approach goes on in
-``APPROACH_FINE_STEP_M`` steps: a corner pressing the gel shows only a fraction of the contact
-force one coarse step before the window behind the gel would reach it (docs/controller.md)."""
 
 
 class SessionFault(RuntimeError):
@@ -68,7 +53,6 @@ class SessionFault(RuntimeError):
 
 
 Publish = Callable[[str, dict[str, Any]], None]
-T = TypeVar("T")
 
 
 class ExplorationSession:
@@ -119,6 +103,16 @@ class ExplorationSession:
         self.metrics: dict[str, list[float]] = {}
         """Ground-truth scores after reconstruct and each refine (simulation only)."""
         self._scores = None if world is None else GroundTruthScores(world, recorder)
+        self.motion = MotionExecutor(
+            devices=devices,
+            config=config,
+            planner=self.planner,
+            times=self.times,
+            recorder=recorder,
+        )
+        self._device = self.motion.device
+        self._compute = self.motion.compute
+        self.pose_world_tcp = self.motion.pose_world_tcp
         self._frame = None
         self._reference: TactileFrame | None = None
         self._target: TouchTarget | None = None
@@ -127,10 +121,6 @@ class ExplorationSession:
         self._came_from: list[np.ndarray] = []
         """Poses the arm passed through to the current approach start (oldest first)."""
         self._unchanged_touches = 0
-        self._move_start_world_tcp: np.ndarray | None = None
-        """Where the motion under way (or interrupted) started: a pose the arm reached without
-        touching anything. For a touch, the approach start until the retract is back there;
-        None between motions."""
 
     # --- the loop -------------------------------------------------------------------------------
 
@@ -210,7 +200,10 @@ class ExplorationSession:
     async def _capture(self) -> State:
         devices, device = self.devices, self._device
         if self.home_clear_of is not None:
-            await self._go_home(self.home_clear_of)
+            try:
+                await self.motion.go_home(self.home_world_tcp, self.home_clear_of)
+            except HomeError as error:
+                raise SessionFault(str(error)) from None
         gripper_state = await device(devices.gripper.state())
         if abs(gripper_state.width_m - self.config.motion.touch_width_m) > 1e-4:
             await device(
@@ -292,11 +285,11 @@ class ExplorationSession:
         self._touch = touch
         came_from = [pose_world_tcp]
         for waypoint in waypoints:
-            await self._move(waypoint)
+            await self.motion.move(waypoint)
             came_from.append(waypoint.pose_world_tcp)
         # The approach start is left after the touch: the way here is known to be clear.
         self._came_from = came_from[:-1] if waypoints else self._came_from
-        if await self._move_until_contact(approach):
+        if await self.motion.move_until_contact(approach):
             log.info("the pad touched on the approach: the surface is nearer than estimated")
         return State.TOUCH
 
@@ -322,17 +315,13 @@ class ExplorationSession:
         pose_world_tcp = self.pose_world_tcp(arm)
         pose_world_pad = pose_world_tcp @ self.tool.pose_tcp_pad(gripper.width_m)
         self.recorder.log_robot(pose_world_tcp, pose_world_pad)
-        # Back off: fingers to the approach width, then the arm out along the approach line.
-        await device(
-            devices.gripper.move(
-                motion.touch_width_m,
-                speed_m_s=0.05,
-                force_limit_n=limits.max_force_n,
-                timeout_s=10.0,
-            )
+        # Back off: fingers to the approach width, then the arm out along the approach line
+        # from where it stopped (before the stand-off when the pad touched on the approach).
+        await self.motion.open_fingers_to_touch_width()
+        retract = await self._compute(
+            self.planner.plan_retract, self._touch, pose_world_tcp, arm.joints_rad
         )
-        retract = self.planner.plan_retract(self._touch, arm.joints_rad, Obstacles.none())
-        await self._move(retract)
+        await self.motion.move(retract)
 
         measurement = TouchMeasurement(
             target=self._target,
@@ -387,118 +376,15 @@ class ExplorationSession:
 
     # --- motion ---------------------------------------------------------------------------------
 
-    async def _go_home(self, obstacles: Obstacles) -> None:
-        """To the home pose through the planner's checks, then check the arm is there."""
-        arm = await self._device(self.devices.arm.state())
-        home, pose, joints = self.home_world_tcp, self.pose_world_tcp(arm), arm.joints_rad
-        try:
-            plan = await self._compute(self.planner.plan_home, pose, joints, home, obstacles)
-        except SafetyViolation as violation:
-            raise SessionFault(f"cannot go home before the capture: {violation}") from None
-        for waypoint in plan:
-            await self._move(waypoint)
-        pose = self.pose_world_tcp(await self._device(self.devices.arm.state()))
-        if not at_pose(pose, home):
-            raise SessionFault(f"the arm stopped at {np.round(pose[:3, 3], 3)} m, not at home")
-
     def _joints_at(self, touch: TouchGeometry, joints_near: np.ndarray) -> np.ndarray:
         return check_reachable(touch.pose_world_tcp_start, self.pose_world_base, joints_near)
 
-    async def _move(self, waypoint: Waypoint, *, new_motion: bool = True) -> None:
-        """Move to a waypoint; ``new_motion=False`` continues a motion (an approach's steps),
-        which a retreat then retraces to its start."""
-        if new_motion:
-            arm = await self._device(self.devices.arm.state())
-            self._move_start_world_tcp = self.pose_world_tcp(arm)
-        pose_base_tcp = invert_transform(self.pose_world_base) @ waypoint.pose_world_tcp
-        await self._device(
-            self.devices.arm.move_linear(
-                matrix_to_ur_pose(pose_base_tcp),
-                speed_m_s=waypoint.speed_m_s,
-                acceleration_m_s2=ACCELERATION_M_S2,
-                timeout_s=STEP_TIMEOUT_S[State.APPROACH],
-            )
-        )
-        if new_motion:
-            self._move_start_world_tcp = None  # arrived: no motion to retreat from
-
-    async def _move_until_contact(self, waypoint: Waypoint) -> bool:
-        """The slow approach, watching the finger force: the surface may be nearer than the
-        estimate said. The line is driven in ``APPROACH_STEP_M`` moves with a force reading
-        after each, and in ``APPROACH_FINE_STEP_M`` moves once the gel feels anything, so the
-        arm never travels further than the gel can give between checks. Returns True when
-        the pad touched on the way (the arm then stays there). A retreat from anywhere on the
-        line goes back to its start."""
-        arm = await self._device(self.devices.arm.state())
-        start = self.pose_world_tcp(arm)
-        self._move_start_world_tcp = start
-        end = waypoint.pose_world_tcp
-        distance = float(np.linalg.norm(end[:3, 3] - start[:3, 3]))
-        limit_n = self.config.limits.approach_contact_force_n
-        travelled, step_m = 0.0, APPROACH_STEP_M
-        while travelled < distance - 1e-9:
-            travelled = min(distance, travelled + step_m)
-            pose = end.copy()
-            if travelled < distance:
-                pose[:3, 3] = start[:3, 3] + travelled / distance * (end[:3, 3] - start[:3, 3])
-            step = Waypoint(pose, waypoint.joints_rad, waypoint.speed_m_s, "approach")
-            await self._move(step, new_motion=False)
-            force_n = (await self._device(self.devices.gripper.state())).force_n
-            if force_n >= limit_n:
-                return True
-            if force_n >= APPROACH_FINE_FORCE_FRACTION * limit_n:
-                step_m = APPROACH_FINE_STEP_M
-        return False
-
     async def _make_safe(self, *, report_failure: bool = True) -> None:
-        """Stop all motion, pull the pad back, take the tool back to where the interrupted
-        motion started (the way it came; with none interrupted it stays) and up above the
-        object. Only ever to those poses, so repeated faults cannot walk the arm away. Errors
-        here are logged, never raised: this runs on faults, and must not hide the first
-        error."""
-        devices = self.devices
-        for stop in (devices.arm.stop, devices.gripper.stop):
-            try:
-                await stop()
-            except DeviceError as error:
-                log.error("stop failed: %s", error)
-        back_to = self._move_start_world_tcp
-        try:
-            arm = await devices.arm.state()
-            if arm.protective_stopped:
-                await devices.arm.recover_protective_stop()
-                arm = await devices.arm.state()
-            gripper = await devices.gripper.state()
-            if gripper.width_m > self.config.motion.touch_width_m + 1e-4:
-                # Closing the fingers draws the pad back from the surface.
-                await devices.gripper.move(
-                    self.config.motion.touch_width_m,
-                    speed_m_s=0.05,
-                    force_limit_n=self.config.limits.max_force_n,
-                    timeout_s=10.0,
-                )
-            pose_world_tcp = self.pose_world_tcp(arm)
-            joints = arm.joints_rad
-            retreat = partial(self.planner.plan_retreat, back_to_world_tcp=back_to)
-            for waypoint in await self._compute(retreat, pose_world_tcp, joints):
-                await self._move(waypoint)
-                pose_world_tcp, joints = waypoint.pose_world_tcp, waypoint.joints_rad
-        except (DeviceError, SafetyViolation) as error:
-            if not report_failure:
-                log.warning("stayed at the last approach start: %s", error)
-                return
-            log.error("could not retreat to a safe pose: %s", error)
-            self.error = (self.error or "") + f" (retreat failed: {error})"
-            return
-        # Back where the motion started, a pose the arm reached without touching anything:
-        # safe. Going up above the object is a courtesy a wrong estimate may refuse.
-        try:
-            obstacles = await self._compute(Obstacles.of_estimate, self.estimate)
-            lift = await self._compute(self.planner.plan_lift, pose_world_tcp, joints, obstacles)
-            for waypoint in lift:
-                await self._move(waypoint)
-        except (DeviceError, SafetyViolation) as error:
-            log.warning("stayed where the interrupted motion started: %s", error)
+        """Stop, retreat the way the interrupted motion came and lift (``MotionExecutor``)."""
+        obstacles = await self._compute(Obstacles.of_estimate, self.estimate)
+        failure = await self.motion.make_safe(obstacles, report_failure=report_failure)
+        if failure is not None:
+            self.error = (self.error or "") + f" ({failure})"
 
     async def _fault(self, message: str) -> None:
         self.error = message
@@ -507,22 +393,6 @@ class ExplorationSession:
         self._transition(State.FAULT, message)
 
     # --- helpers --------------------------------------------------------------------------------
-
-    def pose_world_tcp(self, arm: ArmState) -> np.ndarray:
-        """The TCP pose of an arm state in the world frame (4x4)."""
-        return self.pose_world_base @ ur_pose_to_matrix(arm.pose_base_tcp)
-
-    async def _compute(self, function: Callable[..., Any], *args: Any) -> Any:
-        """Run perception or planning in a worker thread (the event loop stays responsive)."""
-        return await asyncio.to_thread(function, *args)
-
-    async def _device(self, call: Awaitable[T]) -> T:
-        """Await a device command or query, counting its time as motion (``SessionTimes``)."""
-        start = time.perf_counter()
-        try:
-            return await call
-        finally:
-            self.times.motion_s += time.perf_counter() - start
 
     async def _record(self, *calls: Callable[[], object]) -> None:
         """Record or publish in a worker thread, in order: Rerun's conversion of images and

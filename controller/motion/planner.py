@@ -178,14 +178,16 @@ class MotionPlanner:
         )
 
     def plan_retract(
-        self, touch: TouchGeometry, joints_rad: FloatArray, obstacles: Obstacles
+        self, touch: TouchGeometry, pose_world_tcp: FloatArray, joints_rad: FloatArray
     ) -> Waypoint:
-        """Back out along the approach line from the stand-off to the approach start."""
+        """Back out along the approach line, from where the arm is on it (at the stand-off, or
+        where the pad touched on the way) to the approach start: the way it came, so only the
+        table is checked."""
         return self.line(
-            touch.pose_world_tcp_standoff,
+            pose_world_tcp,
             touch.pose_world_tcp_start,
             joints_rad,
-            obstacles,
+            Obstacles.none(),
             speed_m_s=self.limits.max_tcp_speed_m_s,
             label="retract",
             exempt_parts=APPROACH_EXEMPT_PARTS,
@@ -452,7 +454,8 @@ class MotionPlanner:
                 start_world_tcp[:3, 3] + fraction * (end_world_tcp[:3, 3] - start_world_tcp[:3, 3]),
             )
 
-        joints = np.asarray(joints_rad, dtype=float)
+        # The joints at the start pose (nearest those given): rates are measured from there.
+        joints = check_reachable(start_world_tcp, self.pose_world_base, joints_rad)
         joint_rad_per_fraction = 0.0
         previous = 0.0
         for fraction in np.linspace(0.0, 1.0, steps + 1)[1:]:

@@ -225,7 +225,7 @@ async def test_planned_touch_runs_on_the_sim_arm_without_protective_stop() -> No
         await gripper.move(
             CONFIG.motion.touch_width_m, speed_m_s=0.05, force_limit_n=40, timeout_s=5
         )
-        retract = plan.plan_retract(touch, world.joints_rad, obstacles)
+        retract = plan.plan_retract(touch, world.pose_world_tcp(), world.joints_rad)
         await arm.move_linear(
             matrix_to_ur_pose(np.linalg.inv(POSE_WORLD_BASE) @ retract.pose_world_tcp),
             speed_m_s=retract.speed_m_s,
