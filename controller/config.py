@@ -208,6 +208,10 @@ class ModelsConfig:
     (models.touch.refinement.refine_latent); 0 = the paper's loss alone."""
     refine_write_measurements: bool = True
     """Write the touches' measured voxels into the refined shape (empty 0, occupied 1)."""
+    policy_stop_uncertainty: float = 0.0
+    """The session stops before its touch budget when the active policy's most uncertain
+    reachable window is less uncertain than this (0..1, see ``TouchTarget.uncertainty``);
+    0 never stops early."""
 
     def __post_init__(self) -> None:
         if not NAME_PATTERN.fullmatch(self.prior):
@@ -217,6 +221,8 @@ class ModelsConfig:
             raise FieldError("refine_iterations_per_touch", "must be >= 0")
         if not (math.isfinite(self.refine_anchor_weight) and self.refine_anchor_weight >= 0):
             raise FieldError("refine_anchor_weight", "must be >= 0")
+        if not 0.0 <= self.policy_stop_uncertainty <= 1.0:
+            raise FieldError("policy_stop_uncertainty", "must be in [0, 1]")
 
 
 @dataclass(frozen=True)

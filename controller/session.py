@@ -20,7 +20,13 @@ import numpy as np
 from controller.config import Config
 from controller.motion.executor import HomeError, MotionExecutor
 from controller.motion.planner import MotionPlanner, TouchGeometry, Waypoint, home_pose_world_tcp
-from controller.motion.safety import Obstacles, SafetyViolation, check_force, check_reachable
+from controller.motion.safety import (
+    POSSIBLE_OCCUPANCY,
+    Obstacles,
+    SafetyViolation,
+    check_force,
+    check_reachable,
+)
 from controller.perception.protocol import (
     Perception,
     ShapeEstimate,
@@ -37,15 +43,19 @@ from drivers.base import DeviceError, TactileFrame
 from drivers.factory import Devices
 from drivers.tool import ToolModel
 from models.geometry import ur_pose_to_matrix
+from models.object_bound import ObjectBound
+from models.touch.constraints import touch_constraints
 
 log = logging.getLogger(__name__)
 
 
-CONVERGED_AFTER_UNCHANGED_TOUCHES = 2
-"""The session ends early when this many touches in a row flipped no voxel across 0.5: the
-shape has stopped changing."""
 REJECTED_TARGET_RADIUS_M = 0.01
 """Targets within this distance of one the planner refused are not proposed again."""
+MISSED_LINE_RADIUS_M = 0.015
+MISSED_LINE_ANGLE_DEG = 30.0
+"""After a touch met nothing, a target within this distance of its line, approached within this
+angle of its direction, would be a near repeat: it is not proposed."""
+MAX_SKIPPED_RECORDS = 200
 
 
 class SessionFault(RuntimeError):
@@ -120,7 +130,11 @@ class ExplorationSession:
         self._rejected: list[np.ndarray] = []
         self._came_from: list[np.ndarray] = []
         """Poses the arm passed through to the current approach start (oldest first)."""
-        self._unchanged_touches = 0
+        self.bound: ObjectBound | None = None
+        """Where the object may be, from the measurements (``models.object_bound``)."""
+        self.stop_reason: str | None = None
+        self.skipped: list[dict[str, Any]] = []
+        """Targets not touched because no safe motion reaches them, with the reason."""
 
     # --- the loop -------------------------------------------------------------------------------
 
@@ -217,6 +231,14 @@ class ExplorationSession:
         self._reference = await device(devices.tactile.reference())
         self._frame = await device(devices.camera.read())
         await self._record(partial(self.recorder.log_camera, self._frame))
+        if np.any(self._frame.depth_m > 0):
+            self.bound = await self._compute(
+                ObjectBound.from_depth,
+                self._frame.depth_m,
+                self._frame.intrinsics,
+                self._frame.pose_world_camera,
+                self.config.voxel_grid.object_point_world,
+            )
         arm = await device(devices.arm.state())
         pose_world_tcp = self.pose_world_tcp(arm)
         self.recorder.log_robot(
@@ -226,6 +248,10 @@ class ExplorationSession:
 
     async def _reconstruct(self) -> State:
         self.estimate = await self._compute(self.perception.reconstruct, self._frame, self.request)
+        if self.bound is None:  # no depth: the object-fitted cube is where the object may be
+            object_point = self.config.voxel_grid.object_point_world
+            self.bound = ObjectBound.from_box(self.estimate.grid, object_point)
+        await self._add_estimate_to_bound()
         await self._record_shape()
         self.times.mark(touch=False)
         return State.SELECT
@@ -233,38 +259,75 @@ class ExplorationSession:
     async def _select(self) -> State:
         assert self.estimate is not None
         if self.touch_count >= self.request.max_touches:
-            return State.DONE
-        if self._unchanged_touches >= CONVERGED_AFTER_UNCHANGED_TOUCHES:
-            log.info("converged: %d touches changed no voxel", self._unchanged_touches)
-            return State.DONE
-        obstacles = await self._compute(Obstacles.of_estimate, self.estimate)
+            return self._stop("the touch budget is spent")
+        obstacles = self._obstacles()
         joints = (await self._device(self.devices.arm.state())).joints_rad
 
         def allowed(target: TouchTarget) -> bool:
-            if any(
-                np.linalg.norm(target.target_world - rejected) < REJECTED_TARGET_RADIUS_M
-                for rejected in self._rejected
-            ):
-                return False
-            touch = self.planner.touch_geometry(target.target_world, target.direction_world)
-            try:
-                self.planner.plan_approach(touch, self._joints_at(touch, joints), obstacles)
-            except SafetyViolation:
-                return False
-            return True
+            reason = self._near_earlier(target)
+            if reason is None:
+                touch = self.planner.touch_geometry(target.target_world, target.direction_world)
+                try:
+                    self.planner.plan_approach(touch, self._joints_at(touch, joints), obstacles)
+                except SafetyViolation as violation:
+                    reason = str(violation)
+            if reason is not None:
+                self._skip(target, reason, "select")
+            return reason is None
 
         self._target = await self._compute(
             self.perception.select, self.estimate, self.request, self.outcomes, allowed
         )
         if self._target is None:
-            log.info("no reachable target left to touch")
-            return State.DONE
+            return self._stop("no safe, reachable target is left")
+        threshold = self.config.models.policy_stop_uncertainty
+        if self._target.uncertainty < threshold:
+            return self._stop(
+                f"the policy's uncertainty {self._target.uncertainty:.3f} is below {threshold}"
+            )
         return State.APPROACH
+
+    def _stop(self, reason: str) -> State:
+        log.info("session %s stops: %s", self.session_id, reason)
+        self.stop_reason = reason
+        return State.DONE
+
+    def _near_earlier(self, target: TouchTarget) -> str | None:
+        """Why a target repeats an earlier one (a refused target, or a touch that met
+        nothing), or None."""
+        point, direction = target.target_world, target.direction_world
+        if any(np.linalg.norm(point - r) < REJECTED_TARGET_RADIUS_M for r in self._rejected):
+            return "near a target whose motions were refused"
+        for outcome in self.outcomes:
+            if outcome.measurement.contact:
+                continue
+            missed = outcome.measurement.target
+            along = missed.direction_world / np.linalg.norm(missed.direction_world)
+            offset = point - missed.target_world
+            lateral = np.linalg.norm(offset - (offset @ along) * along)
+            cosine = direction @ along / np.linalg.norm(direction)
+            if lateral < MISSED_LINE_RADIUS_M and cosine > np.cos(
+                np.radians(MISSED_LINE_ANGLE_DEG)
+            ):
+                return "a near repeat of a touch that met nothing"
+        return None
+
+    def _skip(self, target: TouchTarget, reason: str, stage: str) -> None:
+        if len(self.skipped) < MAX_SKIPPED_RECORDS:
+            self.skipped.append(
+                {
+                    "touch": self.touch_count + 1,
+                    "stage": stage,
+                    "target_world": np.round(target.target_world, 4).tolist(),
+                    "direction_world": np.round(target.direction_world, 4).tolist(),
+                    "reason": reason,
+                }
+            )
 
     async def _approach(self) -> State:
         assert self._target is not None and self.estimate is not None
         target = self._target
-        obstacles = await self._compute(Obstacles.of_estimate, self.estimate)
+        obstacles = self._obstacles()
         arm = await self._device(self.devices.arm.state())
         pose_world_tcp = self.pose_world_tcp(arm)
         touch = self.planner.touch_geometry(target.target_world, target.direction_world)
@@ -281,6 +344,7 @@ class ExplorationSession:
         except SafetyViolation as violation:
             log.warning("target %s refused: %s", np.round(target.target_world, 3), violation)
             self._rejected.append(target.target_world)
+            self._skip(target, str(violation), "approach")
             return State.SELECT
         self._touch = touch
         came_from = [pose_world_tcp]
@@ -334,6 +398,10 @@ class ExplorationSession:
         )
         outcome = await self._compute(self.perception.interpret, measurement)
         self.outcomes.append(outcome)
+        if outcome.touch is not None and self.bound is not None:
+            # What the gel swept through without meeting anything is free.
+            free = touch_constraints(outcome.touch, self.bound.grid).empty_ijk()
+            self.bound = await self._compute(self.bound.carve, free)
         self.touch_count += 1
         self.recorder.set_touch(self.touch_count)
         record = {
@@ -366,12 +434,12 @@ class ExplorationSession:
             self.perception.refine, self.estimate, self.outcomes, self.request
         )
         flipped = int(np.count_nonzero((self.estimate.probabilities > 0.5) != (previous > 0.5)))
-        self._unchanged_touches = self._unchanged_touches + 1 if flipped == 0 else 0
         self.recorder.log_metric("voxels_flipped", flipped)
+        await self._add_estimate_to_bound()
         await self._record_shape()
         self.times.mark()
         if self.touch_count >= self.request.max_touches:
-            return State.DONE
+            return self._stop("the touch budget is spent")
         return State.SELECT
 
     # --- motion ---------------------------------------------------------------------------------
@@ -379,9 +447,19 @@ class ExplorationSession:
     def _joints_at(self, touch: TouchGeometry, joints_near: np.ndarray) -> np.ndarray:
         return check_reachable(touch.pose_world_tcp_start, self.pose_world_base, joints_near)
 
+    def _obstacles(self) -> Obstacles:
+        """What motions keep clear of: where the object may be, and the estimate."""
+        return Obstacles.of_estimate(self.estimate, self.bound)
+
+    async def _add_estimate_to_bound(self) -> None:
+        """The estimate adds to where the object may be (and never removes from it)."""
+        assert self.estimate is not None and self.bound is not None
+        points = self.estimate.occupied_points_world(POSSIBLE_OCCUPANCY)
+        self.bound = await self._compute(self.bound.with_points, points)
+
     async def _make_safe(self, *, report_failure: bool = True) -> None:
         """Stop, retreat the way the interrupted motion came and lift (``MotionExecutor``)."""
-        obstacles = await self._compute(Obstacles.of_estimate, self.estimate)
+        obstacles = self._obstacles()
         failure = await self.motion.make_safe(obstacles, report_failure=report_failure)
         if failure is not None:
             self.error = (self.error or "") + f" ({failure})"
@@ -428,6 +506,8 @@ class ExplorationSession:
             "touches": self.touch_count,
             "contacts": sum(o.measurement.contact for o in self.outcomes),
             "error": self.error,
+            "stop_reason": self.stop_reason,
+            "skipped_targets": self.skipped,
             "request": self.request.__dict__,
             "compute_s": round(self.times.compute_s, 3),
             "motion_s": round(self.times.motion_s, 3),

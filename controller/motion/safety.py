@@ -20,6 +20,7 @@ from drivers.base import MotionRejectedError
 from drivers.tool import ToolBox, ToolModel
 from drivers.ur5.kinematics import inverse_kinematics
 from models.geometry import invert_transform, transform_points
+from models.object_bound import ObjectBound
 
 if TYPE_CHECKING:
     from controller.perception.protocol import ShapeEstimate
@@ -38,27 +39,37 @@ class SafetyViolation(MotionRejectedError):
 
 @dataclass(frozen=True)
 class Obstacles:
-    """What the tool must keep clear of, in the world frame: the table top at z = 0 and the
-    current shape estimate as points (voxel centres, metres) at two levels of belief:
-    ``occupied_points_world`` (v > 0.5, the estimate itself) and ``possible_points_world`` (a
-    lower probability: where the object may still be, as the estimate can be too small; the
-    occupied points when not given)."""
+    """What the tool must keep clear of, in the world frame: the table top at z = 0, the current
+    shape estimate as points (voxel centres, metres) at two levels of belief, and where the
+    object may be whatever the estimate says (``bound``, built from measurements).
+
+    - ``occupied_points_world``: the estimate itself (v > 0.5); the gel's window approaches it.
+    - ``possible_points_world``: the estimate at a lower probability (the occupied points when
+      not given); the parts behind the window keep a little clearance from it on an approach.
+    - ``bound``: where the object may be (``models.object_bound``): every other part, and every
+      part on a transit, keeps the full clearance from it. Without one the possible points
+      stand in (tests, and the next session's way home before it has measured anything).
+    """
 
     occupied_points_world: NDArray[np.float64]
     possible_points_world: NDArray[np.float64] | None = None
+    bound: ObjectBound | None = None
 
     @classmethod
     def none(cls) -> Obstacles:
         return cls(np.zeros((0, 3)))
 
     @classmethod
-    def of_estimate(cls, estimate: ShapeEstimate | None) -> Obstacles:
-        """A shape estimate as obstacles: occupied, and where the object may be (none
-        without an estimate)."""
+    def of_estimate(
+        cls, estimate: ShapeEstimate | None, bound: ObjectBound | None = None
+    ) -> Obstacles:
+        """A shape estimate as obstacles (none without an estimate), with the bound given."""
         if estimate is None:
-            return cls.none()
+            return cls(np.zeros((0, 3)), bound=bound)
         return cls(
-            estimate.occupied_points_world(), estimate.occupied_points_world(POSSIBLE_OCCUPANCY)
+            estimate.occupied_points_world(),
+            estimate.occupied_points_world(POSSIBLE_OCCUPANCY),
+            bound,
         )
 
     @property
@@ -66,24 +77,35 @@ class Obstacles:
         points = self.possible_points_world
         return self.occupied_points_world if points is None else points
 
-    @cached_property
-    def _occupied_tree(self) -> cKDTree:
-        return cKDTree(self.occupied_points_world)
+    @property
+    def keep_out(self) -> NDArray[np.float64]:
+        """The points every part keeps the full clearance from: the bound's surface, or the
+        possible points without a bound."""
+        return self.possible if self.bound is None else self.bound.boundary_points_world
+
+    def inside(self, point_world: NDArray[np.float64]) -> bool:
+        """Whether a point lies inside the bound (where no surface point is near to tell)."""
+        return self.bound is not None and bool(self.bound.contains(point_world)[0])
 
     @cached_property
-    def _possible_tree(self) -> cKDTree:
-        return cKDTree(self.possible)
+    def _trees(self) -> dict[str, cKDTree]:
+        return {}
 
     def near(
-        self, centre_world: NDArray[np.float64], radius_m: float, *, possible: bool = False
+        self, centre_world: NDArray[np.float64], radius_m: float, *, level: str = "keep_out"
     ) -> NDArray[np.float64]:
-        """The occupied (or possible) points within ``radius_m`` of a point (a cheap
-        pre-filter)."""
-        points = self.possible if possible else self.occupied_points_world
+        """The points of a level ("occupied", "possible" or "keep_out") within ``radius_m`` of
+        a point (a cheap pre-filter)."""
+        points = {
+            "occupied": self.occupied_points_world,
+            "possible": self.possible,
+            "keep_out": self.keep_out,
+        }[level]
         if len(points) == 0:
             return points
-        tree = self._possible_tree if possible else self._occupied_tree
-        return points[tree.query_ball_point(centre_world, radius_m)]
+        if level not in self._trees:
+            self._trees[level] = cKDTree(points)
+        return points[self._trees[level].query_ball_point(centre_world, radius_m)]
 
 
 def check_speed(speed_m_s: float, limit_m_s: float, *, what: str = "TCP speed") -> None:
@@ -132,10 +154,11 @@ def check_clearance(
     near_parts: Sequence[str] = (),
 ) -> None:
     """Every rigid tool part keeps ``table_clearance_m`` above the table and
-    ``shape_clearance_m`` from where the object may be (``Obstacles.possible``), except on the
-    last stretch of an approach, where the sensor must come close to the surface it is about
-    to touch: ``near_parts`` keep half the margin, ``exempt_parts`` (the part carrying the
-    gel) may come up to the estimate itself."""
+    ``shape_clearance_m`` from where the object may be (``Obstacles.keep_out``, and not inside
+    the bound), except on the last stretch of an approach, where the sensor must come close to
+    the surface it is about to touch: ``near_parts`` keep a quarter of the margin from the
+    estimate's possible points, ``exempt_parts`` (the part carrying the gel) may come up to the
+    estimate itself."""
     for box in tool.rigid_boxes(width_m):
         pose_world_box = pose_world_tcp @ box.pose_tcp_box
         lowest_m = _lowest_point_z(pose_world_box, box)
@@ -144,14 +167,23 @@ def check_clearance(
                 f"{box.name} would be {lowest_m * 1e3:.1f} mm above the table, "
                 f"clearance is {limits.table_clearance_m * 1e3:.0f} mm"
             )
-        exempt = box.name in exempt_parts
-        clearance = 0.0 if exempt else limits.shape_clearance_m
-        if box.name in near_parts:
+        centre = pose_world_box[:3, 3]
+        if box.name in exempt_parts:
+            level, clearance, where = "occupied", 0.0, "the shape estimate"
+        elif box.name in near_parts:
+            level, where = "possible", "the shape estimate"
             clearance = NEAR_PARTS_CLEARANCE_FRACTION * limits.shape_clearance_m
+        else:
+            level, clearance, where = (
+                "keep_out",
+                limits.shape_clearance_m,
+                "where the object may be",
+            )
+            if obstacles.inside(centre):
+                raise SafetyViolation(f"{box.name} would be inside {where}")
         reach = float(np.linalg.norm(box.half_extents_m)) + clearance
-        nearby = obstacles.near(pose_world_box[:3, 3], reach, possible=not exempt)
+        nearby = obstacles.near(centre, reach, level=level)
         if _box_near_points(pose_world_box, box, nearby, clearance):
-            where = "the shape estimate" if exempt else "where the object may be"
             raise SafetyViolation(
                 f"{box.name} would come within {clearance * 1e3:.0f} mm of {where}"
             )

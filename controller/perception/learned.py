@@ -196,7 +196,10 @@ class LearnedPerception:
         if request.policy == "active":
             for candidate in touch_candidates(known, grid, feasible):
                 target = TouchTarget(
-                    candidate.target_world, candidate.approach_direction_world, candidate.score
+                    candidate.target_world,
+                    candidate.approach_direction_world,
+                    candidate.score,
+                    candidate.uncertainty,
                 )
                 if allowed(target):
                     return target

@@ -49,6 +49,9 @@ class TouchTarget:
     target_world: FloatArray
     direction_world: FloatArray
     score: float = 0.0
+    uncertainty: float = 1.0
+    """The policy's uncertainty about the touched window, 0 (certain) to 1 (every probe at
+    v = 0.5); 1 when the policy does not measure it (random)."""
 
 
 @dataclass(frozen=True)

@@ -52,6 +52,9 @@ class TouchCandidate:
     yaw_deg: float
     elevation_deg: float
     window_corners_world: FloatArray
+    uncertainty: float = 1.0
+    """1 - 2 x the window's mean confidence: 0 when every probe is certain (v = 0 or 1), 1 when
+    every probe is at v = 0.5."""
 
 
 def confidence(voxels: ArrayLike) -> NDArray[np.float32]:
@@ -173,8 +176,15 @@ def _best_window(
     half_b = 0.5 * cols * grid.voxel_size_m * b_axis
     centre = targets_world[best]
     corners = np.array([centre + su * half_u + sb * half_b for su, sb in _CORNER_SIGNS])
+    uncertainty = 1.0 - 2.0 * float(score[best]) / (rows * cols)
     return TouchCandidate(
-        centre, direction_world, float(score[best]), plane.yaw_deg, plane.elevation_deg, corners
+        centre,
+        direction_world,
+        float(score[best]),
+        plane.yaw_deg,
+        plane.elevation_deg,
+        corners,
+        uncertainty,
     )
 
 
