@@ -84,9 +84,9 @@ class TouchshapeService:
         self._last_done = False
         """Whether the last session ended done; if not (a fault, an abort, or none yet), the
         arm is wherever that left it, and the next session starts by going home."""
-        self._last_estimate: ShapeEstimate | None = None
-        """The last shape estimate known: the next way home keeps clear of it (the object is
-        assumed to stay between sessions)."""
+        self._last_obstacles = Obstacles.none()
+        """Where the last session found the object may be: the next way home keeps clear of it
+        (the object is assumed to stay between sessions)."""
         self.defaults = ExploreRequest(prior=config.models.prior)
         self.prior_names: frozenset[str] = frozenset()
         """What requests may name as ``prior`` (the perception's, read at start)."""
@@ -182,7 +182,7 @@ class TouchshapeService:
             publish_shape=lambda estimate: self._publish(
                 "shape", encode_shape(session_id, session.touch_count, estimate)
             ),
-            home_clear_of=None if self._last_done else Obstacles.of_estimate(self._last_estimate),
+            home_clear_of=None if self._last_done else self._last_obstacles,
         )
         camera_position = self.config.cameras.rgbd.pose_world_camera()[:3, 3]
         grid = self.config.voxel_grid.grid(tuple(camera_position))
@@ -202,8 +202,8 @@ class TouchshapeService:
         try:
             summary = await session.run(self._abort)
             self._last_done = summary["state"] == str(State.DONE)
-            if session.estimate is not None:
-                self._last_estimate = session.estimate
+            if session.estimate is not None or session.bound is not None:
+                self._last_obstacles = Obstacles.of_estimate(session.estimate, session.bound)
             # Compressing the voxels, meshing and writing them, and flushing the recording take
             # tens of milliseconds or more: worker threads' time, not the event loop's.
             summary["artifacts"] = await asyncio.to_thread(self._save_artifacts, session, recorder)
