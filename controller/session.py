@@ -9,6 +9,7 @@ monitoring) never waits on it. Every transition is published and recorded.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import time
 from collections.abc import Awaitable, Callable
@@ -19,13 +20,12 @@ import numpy as np
 
 from controller.config import Config
 from controller.motion.executor import HomeError, MotionExecutor
-from controller.motion.planner import MotionPlanner, TouchGeometry, Waypoint, home_pose_world_tcp
+from controller.motion.planner import MotionPlanner, TouchGeometry, home_pose_world_tcp
 from controller.motion.safety import (
     POSSIBLE_OCCUPANCY,
     Obstacles,
     SafetyViolation,
     check_force,
-    check_reachable,
 )
 from controller.perception.protocol import (
     Perception,
@@ -130,8 +130,10 @@ class ExplorationSession:
         self._rejected: list[np.ndarray] = []
         self._came_from: list[np.ndarray] = []
         """Poses the arm passed through to the current approach start (oldest first)."""
-        self.bound: ObjectBound | None = None
+        self.measured: ObjectBound | None = None
         """Where the object may be, from the measurements (``models.object_bound``)."""
+        self.bound: ObjectBound | None = None
+        """``measured`` and the shape estimate: what motions keep clear of."""
         self.stop_reason: str | None = None
         self.skipped: list[dict[str, Any]] = []
         """Targets not touched because no safe motion reaches them, with the reason."""
@@ -232,7 +234,7 @@ class ExplorationSession:
         self._frame = await device(devices.camera.read())
         await self._record(partial(self.recorder.log_camera, self._frame))
         if np.any(self._frame.depth_m > 0):
-            self.bound = await self._compute(
+            self.measured = await self._compute(
                 ObjectBound.from_depth,
                 self._frame.depth_m,
                 self._frame.intrinsics,
@@ -248,9 +250,9 @@ class ExplorationSession:
 
     async def _reconstruct(self) -> State:
         self.estimate = await self._compute(self.perception.reconstruct, self._frame, self.request)
-        if self.bound is None:  # no depth: the object-fitted cube is where the object may be
+        if self.measured is None:  # no depth: the object-fitted cube is where it may be
             object_point = self.config.voxel_grid.object_point_world
-            self.bound = ObjectBound.from_box(self.estimate.grid, object_point)
+            self.measured = ObjectBound.from_box(self.estimate.grid, object_point)
         await self._add_estimate_to_bound()
         await self._record_shape()
         self.times.mark(touch=False)
@@ -265,10 +267,16 @@ class ExplorationSession:
 
         def allowed(target: TouchTarget) -> bool:
             reason = self._near_earlier(target)
+            moved = self._onto_measured(target)
+            if moved is None:
+                reason = "the pad's path misses where the object may be"
+            else:
+                target = moved
             if reason is None:
-                touch = self.planner.touch_geometry(target.target_world, target.direction_world)
                 try:
-                    self.planner.plan_approach(touch, self._joints_at(touch, joints), obstacles)
+                    self.planner.check_touch(
+                        target.target_world, target.direction_world, joints, obstacles
+                    )
                 except SafetyViolation as violation:
                     reason = str(violation)
             if reason is not None:
@@ -276,10 +284,18 @@ class ExplorationSession:
             return reason is None
 
         self._target = await self._compute(
-            self.perception.select, self.estimate, self.request, self.outcomes, allowed
+            self.perception.select,
+            self.estimate,
+            self.request,
+            self.outcomes,
+            allowed,
+            self._meets_measured,
         )
         if self._target is None:
             return self._stop("no safe, reachable target is left")
+        # A perception that ignored ``allowed`` may propose a sure miss: the planner still
+        # checks it on the approach.
+        self._target = self._onto_measured(self._target) or self._target
         threshold = self.config.models.policy_stop_uncertainty
         if self._target.uncertainty < threshold:
             return self._stop(
@@ -291,6 +307,34 @@ class ExplorationSession:
         log.info("session %s stops: %s", self.session_id, reason)
         self.stop_reason = reason
         return State.DONE
+
+    def _onto_measured(self, target: TouchTarget) -> TouchTarget | None:
+        """The target moved along its approach line to where the measured bound begins, when
+        the estimate put it in front of that (in space seen free: the pad would sweep through
+        nothing there); None when the pad's path misses the bound altogether (a sure miss)."""
+        if self.measured is None:
+            return target
+        direction = target.direction_world / np.linalg.norm(target.direction_world)
+        distance = self.config.motion.approach_distance_m
+        reach = (self.config.gripper.stroke_m - self.config.motion.touch_width_m) / 2
+        start = target.target_world - distance * direction
+        first = self.measured.first_along(start, direction, distance + reach)
+        if first is None:
+            return None
+        if first <= distance:
+            return target
+        return dataclasses.replace(target, target_world=start + first * direction)
+
+    def _meets_measured(self, targets_world: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """Whether each target's pad path (approach start to the fingers' reach) meets the
+        measured bound: a path that does not is a sure miss."""
+        if self.measured is None:
+            return np.ones(len(targets_world), dtype=bool)
+        direction = direction / np.linalg.norm(direction)
+        distance = self.config.motion.approach_distance_m
+        reach = (self.config.gripper.stroke_m - self.config.motion.touch_width_m) / 2
+        starts = targets_world - distance * direction
+        return self.measured.lines_meet(starts, direction, distance + reach)
 
     def _near_earlier(self, target: TouchTarget) -> str | None:
         """Why a target repeats an earlier one (a refused target, or a touch that met
@@ -330,30 +374,30 @@ class ExplorationSession:
         obstacles = self._obstacles()
         arm = await self._device(self.devices.arm.state())
         pose_world_tcp = self.pose_world_tcp(arm)
-        touch = self.planner.touch_geometry(target.target_world, target.direction_world)
-
-        def plan() -> tuple[list[Waypoint], Waypoint]:
-            waypoints = self.planner.plan_transit(
-                pose_world_tcp, arm.joints_rad, touch, obstacles, came_from=self._came_from
-            )
-            joints = waypoints[-1].joints_rad if waypoints else arm.joints_rad
-            return waypoints, self.planner.plan_approach(touch, joints, obstacles)
-
+        plan = partial(
+            self.planner.plan_touch,
+            pose_world_tcp,
+            arm.joints_rad,
+            target.target_world,
+            target.direction_world,
+            obstacles,
+            came_from=self._came_from,
+        )
         try:
-            waypoints, approach = await self._compute(plan)
+            touch_plan = await self._compute(plan)
         except SafetyViolation as violation:
             log.warning("target %s refused: %s", np.round(target.target_world, 3), violation)
             self._rejected.append(target.target_world)
             self._skip(target, str(violation), "approach")
             return State.SELECT
-        self._touch = touch
+        self._touch, waypoints = touch_plan.touch, touch_plan.transit
         came_from = [pose_world_tcp]
         for waypoint in waypoints:
             await self.motion.move(waypoint)
             came_from.append(waypoint.pose_world_tcp)
         # The approach start is left after the touch: the way here is known to be clear.
         self._came_from = came_from[:-1] if waypoints else self._came_from
-        if await self.motion.move_until_contact(approach):
+        if await self.motion.move_until_contact(touch_plan.approach):
             log.info("the pad touched on the approach: the surface is nearer than estimated")
         return State.TOUCH
 
@@ -398,10 +442,11 @@ class ExplorationSession:
         )
         outcome = await self._compute(self.perception.interpret, measurement)
         self.outcomes.append(outcome)
-        if outcome.touch is not None and self.bound is not None:
+        if outcome.touch is not None and self.measured is not None:
             # What the gel swept through without meeting anything is free.
-            free = touch_constraints(outcome.touch, self.bound.grid).empty_ijk()
-            self.bound = await self._compute(self.bound.carve, free)
+            free = touch_constraints(outcome.touch, self.measured.grid).empty_ijk()
+            self.measured = await self._compute(self.measured.carve, free)
+            await self._add_estimate_to_bound()
         self.touch_count += 1
         self.recorder.set_touch(self.touch_count)
         record = {
@@ -444,18 +489,15 @@ class ExplorationSession:
 
     # --- motion ---------------------------------------------------------------------------------
 
-    def _joints_at(self, touch: TouchGeometry, joints_near: np.ndarray) -> np.ndarray:
-        return check_reachable(touch.pose_world_tcp_start, self.pose_world_base, joints_near)
-
     def _obstacles(self) -> Obstacles:
         """What motions keep clear of: where the object may be, and the estimate."""
         return Obstacles.of_estimate(self.estimate, self.bound)
 
     async def _add_estimate_to_bound(self) -> None:
         """The estimate adds to where the object may be (and never removes from it)."""
-        assert self.estimate is not None and self.bound is not None
+        assert self.estimate is not None and self.measured is not None
         points = self.estimate.occupied_points_world(POSSIBLE_OCCUPANCY)
-        self.bound = await self._compute(self.bound.with_points, points)
+        self.bound = await self._compute(self.measured.with_points, points)
 
     async def _make_safe(self, *, report_failure: bool = True) -> None:
         """Stop, retreat the way the interrupted motion came and lift (``MotionExecutor``)."""

@@ -175,6 +175,30 @@ class ObjectBound:
         result[inside] = self.possible[tuple(ijk[inside].T)]
         return result
 
+    def first_along(
+        self, start_world: ArrayLike, direction_world: ArrayLike, length_m: float
+    ) -> float | None:
+        """Distance from ``start_world`` along the (unit) direction to the first possible voxel
+        within ``length_m`` (sampled every half voxel), or None when the line misses."""
+        step = 0.5 * self.grid.voxel_size_m
+        distances = np.arange(0.0, length_m + step, step)
+        direction = np.asarray(direction_world, dtype=float)
+        points = np.asarray(start_world, dtype=float) + distances[:, None] * direction
+        hits = np.flatnonzero(self.contains(points))
+        return float(distances[hits[0]]) if len(hits) else None
+
+    def lines_meet(
+        self, starts_world: ArrayLike, direction_world: ArrayLike, length_m: float
+    ) -> NDArray[np.bool_]:
+        """Whether each line from ``starts_world`` (M, 3) along the (unit) direction meets a
+        possible voxel within ``length_m`` (sampled every half voxel)."""
+        starts = np.asarray(starts_world, dtype=float).reshape(-1, 3)
+        step = 0.5 * self.grid.voxel_size_m
+        distances = np.arange(0.0, length_m + step, step)
+        offsets = distances[:, None] * np.asarray(direction_world, dtype=float)
+        points = starts[:, None, :] + offsets[None, :, :]
+        return self.contains(points.reshape(-1, 3)).reshape(len(starts), -1).any(axis=1)
+
     @property
     def top_m(self) -> float:
         """Height of the highest possible voxel's top (0 when empty)."""

@@ -1,5 +1,5 @@
-"""`touchshape bench sim|prior|gelsight|service|explore|explore-bounds`: the benchmarks
-(controller.benchmarks), each printing its JSON and writing it to ``--json``."""
+"""`touchshape bench sim|prior|gelsight|service|explore|explore-bounds|safety`: the benchmarks
+(controller.benchmarks), each printing its JSON (safety: a table) and writing it to ``--json``."""
 
 from __future__ import annotations
 
@@ -157,6 +157,50 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
     bounds.add_argument("--workers", type=int, default=1, help="objects run in this many processes")
     bounds.add_argument("--json", type=Path, default=None, help="also write the JSON here")
     bounds.set_defaults(handler=bench_explore_bounds)
+    _add_safety(commands)
+
+
+SAFETY_EPILOG = """examples:
+  touchshape bench safety --categories mug --yaws 1 --touches 3 --json /tmp/safety_mug.json
+  touchshape bench safety --yaws 2 --touches 10 --json logs/bench_safety.json
+  touchshape bench safety --objects my.obj --up-axis y --fit-size 0.15 --json logs/mine.json
+"""
+
+
+def _add_safety(commands: argparse._SubParsersAction) -> None:
+    from models.procedural import CATEGORIES
+
+    safety = commands.add_parser(
+        "safety",
+        help="full sim sessions per object and yaw: faults, protective stops, and how near each"
+        " rigid tool part came to the true object on every motion",
+        epilog=SAFETY_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    safety.add_argument("--config", type=Path, default=None, help="TOML config (default: sim)")
+    safety.add_argument(
+        "--categories",
+        nargs="+",
+        default=None,
+        choices=CATEGORIES,
+        metavar="NAME",
+        help="procedural categories, as `explore --object` builds them (default: all 14 when"
+        " no --objects)",
+    )
+    safety.add_argument("--objects", nargs="+", type=Path, default=None, help="mesh files")
+    safety.add_argument("--up-axis", default="z", help="up axis of the mesh files (y: ShapeNet)")
+    safety.add_argument(
+        "--fit-size", type=float, default=None, help="scale mesh files to this extent, metres"
+    )
+    safety.add_argument("--yaws", type=int, default=1, help="sessions per object, random yaws")
+    safety.add_argument("--touches", type=int, default=10, help="touch budget per session")
+    safety.add_argument("--seed", type=int, default=0, help="draws the yaws and device noise")
+    safety.add_argument("--input", choices=("rgb", "rgbd"), default="rgb")
+    safety.add_argument(
+        "--logs", type=Path, default=None, help="keep the sessions' logs here (default: a temp dir)"
+    )
+    safety.add_argument("--json", type=Path, required=True, help="write the JSON here")
+    safety.set_defaults(handler=bench_safety)
 
 
 def bench_sim(args: argparse.Namespace) -> int:
@@ -314,3 +358,49 @@ def bench_explore_bounds(args: argparse.Namespace) -> int:
     )
     _run_and_print(run_bounds, args, config, prior_name, settings)
     return 0
+
+
+def bench_safety(args: argparse.Namespace) -> int:
+    """Exit status 1 when any session did not end done or the arm hit anything."""
+    import contextlib
+    import tempfile
+
+    from controller.benchmarks.safety import (
+        TABLE_HEADER,
+        SafetySettings,
+        format_row,
+        format_table,
+        run_safety_benchmark,
+        safety_objects,
+    )
+    from controller.perception.learned import make_perception
+    from models.files import write_json_atomically
+
+    config = load_config(args.config)
+    objects = safety_objects(
+        args.categories, args.objects, up_axis=args.up_axis, fit_size_m=args.fit_size
+    )
+    settings = SafetySettings(
+        touches=args.touches, yaws=args.yaws, seed=args.seed, input_mode=args.input
+    )
+    logs = (
+        contextlib.nullcontext(str(args.logs))
+        if args.logs is not None
+        else tempfile.TemporaryDirectory(prefix="touchshape-safety-")
+    )
+    print(TABLE_HEADER, flush=True)
+    with logs as logs_dir:
+        result = run_safety_benchmark(
+            config,
+            objects,
+            settings,
+            perception_factory=make_perception,
+            logs_dir=Path(logs_dir),
+            progress=lambda row: print(format_row(row), flush=True),
+        )
+    result["logs"] = None if args.logs is None else str(args.logs)
+    write_json_atomically(args.json, result)
+    print(format_table(result))
+    print(f"JSON: {args.json}")
+    failed = len(result["sessions_run"]) - result["states"].get("done", 0)
+    return 1 if failed or result["protective_stops"] else 0

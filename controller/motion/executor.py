@@ -1,8 +1,8 @@
 """Drives the arm and the gripper through checked plans for one session.
 
-The session decides what to do; this module does it: straight moves to checked waypoints, the
-force-watched approach, going home, and making the robot safe after a fault or an abort. Every
-arm motion is appended to the session's ``motions.jsonl``.
+The session decides what to do; this module does it: straight (or joint) moves to checked
+waypoints, the force-watched approach, going home, and making the robot safe after a fault or an
+abort. Every arm motion is appended to the session's ``motions.jsonl``.
 """
 
 from __future__ import annotations
@@ -33,6 +33,11 @@ T = TypeVar("T")
 MOVE_TIMEOUT_S = 180.0
 """A single straight move that takes longer than this has failed."""
 ACCELERATION_M_S2 = 0.5
+JOINT_ACCELERATION_RAD_S2 = 1.0
+"""Of a joint move (a waypoint of kind "joints")."""
+JOINT_START_TOLERANCE_RAD = 0.01
+"""A joint move starts only from within this of the joints its path was checked from (well above
+the arm's joint readings' noise): from elsewhere, moveJ would sweep a path nobody checked."""
 APPROACH_STEP_M = 0.0005
 """Arm travel between force readings on an approach. On a face tilted to the pad, or an edge or
 corner meeting the gel, the force grows slowly: the gel must show ``approach_contact_force_n``
@@ -70,6 +75,9 @@ class MotionExecutor:
         """Where the motion under way (or interrupted) started: a pose the arm reached without
         touching anything. For a touch, the approach start until the retract is back there;
         None between motions."""
+        self.move_start_joints_rad: np.ndarray | None = None
+        """The joints there when the motion under way (or interrupted) is a joint move: the
+        way back is then the same joint path reversed. None otherwise."""
 
     def pose_world_tcp(self, arm: ArmState) -> np.ndarray:
         """The TCP pose of an arm state in the world frame (4x4)."""
@@ -96,33 +104,56 @@ class MotionExecutor:
     async def move(self, waypoint: Waypoint, *, new_motion: bool = True) -> None:
         """Move to a waypoint; ``new_motion=False`` continues a motion (an approach's steps),
         which a retreat then retraces to its start. A new motion is logged."""
+        joint_move = waypoint.kind == "joints"
         if new_motion:
-            start_world_tcp, _ = await self.arm_pose()
+            start_world_tcp, start_joints = await self.arm_pose()
+            if joint_move:
+                _check_joint_start(waypoint, start_joints)
             self.move_start_world_tcp = start_world_tcp
-            self._log_motion(waypoint.label, start_world_tcp, waypoint)
-        pose_base_tcp = invert_transform(self.pose_world_base) @ waypoint.pose_world_tcp
-        await self.device(
-            self.devices.arm.move_linear(
+            self.move_start_joints_rad = start_joints if joint_move else None
+            self._log_motion(waypoint.label, start_world_tcp, waypoint, start_joints)
+        if joint_move:
+            move = self.devices.arm.move_joints(
+                waypoint.joints_rad,
+                speed_rad_s=waypoint.speed_m_s,  # rad/s for a joint move
+                acceleration_rad_s2=JOINT_ACCELERATION_RAD_S2,
+                timeout_s=MOVE_TIMEOUT_S,
+            )
+        else:
+            pose_base_tcp = invert_transform(self.pose_world_base) @ waypoint.pose_world_tcp
+            move = self.devices.arm.move_linear(
                 matrix_to_ur_pose(pose_base_tcp),
                 speed_m_s=waypoint.speed_m_s,
                 acceleration_m_s2=ACCELERATION_M_S2,
                 timeout_s=MOVE_TIMEOUT_S,
             )
-        )
+        await self.device(move)
         if new_motion:
             self.move_start_world_tcp = None  # arrived: no motion to retreat from
+            self.move_start_joints_rad = None
 
-    def _log_motion(self, label: str, start_world_tcp: np.ndarray, end: Waypoint) -> None:
-        self.recorder.log_motion(
-            {
-                "label": label,
-                "start_world_tcp": np.round(start_world_tcp, 6).tolist(),
-                "end_world_tcp": np.round(end.pose_world_tcp, 6).tolist(),
-                "speed_m_s": end.speed_m_s,
-                "width_m": self.config.motion.touch_width_m,
-                "time": time.time(),
-            }
-        )
+    def _log_motion(
+        self,
+        label: str,
+        start_world_tcp: np.ndarray,
+        end: Waypoint,
+        start_joints_rad: np.ndarray | None = None,
+    ) -> None:
+        joint_move = end.kind == "joints"
+        record: dict[str, Any] = {
+            "label": label,
+            "kind": end.kind,
+            "start_world_tcp": np.round(start_world_tcp, 6).tolist(),
+            "end_world_tcp": np.round(end.pose_world_tcp, 6).tolist(),
+            ("speed_rad_s" if joint_move else "speed_m_s"): end.speed_m_s,
+            "width_m": self.config.motion.touch_width_m,
+            "time": time.time(),
+        }
+        if joint_move and start_joints_rad is not None:
+            # A joint move's path is a straight line in the joints, not the TCP's: replayable.
+            record["start_joints_rad"] = np.round(start_joints_rad, 6).tolist()
+            record["end_joints_rad"] = np.round(end.joints_rad, 6).tolist()
+        self.recorder.log_motion(record)
 
     async def move_until_contact(self, waypoint: Waypoint) -> bool:
         """The slow approach, watching the finger force: the surface may be nearer than the
@@ -133,6 +164,7 @@ class MotionExecutor:
         line goes back to its start."""
         start, _ = await self.arm_pose()
         self.move_start_world_tcp = start
+        self.move_start_joints_rad = None
         reached = [start]
         try:
             return await self._approach_steps(start, waypoint, reached)
@@ -201,6 +233,7 @@ class MotionExecutor:
             except DeviceError as error:
                 log.error("stop failed: %s", error)
         back_to = self.move_start_world_tcp
+        back_to_joints = self.move_start_joints_rad
         try:
             arm = await devices.arm.state()
             if arm.protective_stopped:
@@ -211,7 +244,11 @@ class MotionExecutor:
                 await self.open_fingers_to_touch_width()
             pose_world_tcp = self.pose_world_tcp(arm)
             joints = arm.joints_rad
-            retreat = partial(self.planner.plan_retreat, back_to_world_tcp=back_to)
+            retreat = partial(
+                self.planner.plan_retreat,
+                back_to_world_tcp=back_to,
+                back_to_joints_rad=back_to_joints,
+            )
             for waypoint in await self.compute(retreat, pose_world_tcp, joints):
                 await self.move(waypoint)
                 pose_world_tcp, joints = waypoint.pose_world_tcp, waypoint.joints_rad
@@ -230,3 +267,15 @@ class MotionExecutor:
         except (DeviceError, SafetyViolation) as error:
             log.warning("stayed where the interrupted motion started: %s", error)
         return None
+
+
+def _check_joint_start(waypoint: Waypoint, joints_rad: np.ndarray) -> None:
+    """Refuse a joint move from joints other than those its path was checked from."""
+    if waypoint.start_joints_rad is None:
+        return
+    off_rad = float(np.max(np.abs(joints_rad - waypoint.start_joints_rad)))
+    if off_rad > JOINT_START_TOLERANCE_RAD:
+        raise SafetyViolation(
+            f"{waypoint.label}: the arm's joints are {off_rad:.3f} rad from those the joint move"
+            " was checked from"
+        )

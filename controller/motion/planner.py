@@ -5,27 +5,32 @@ A touch: the arm brings the pad to ``approach_distance_m`` from the target on it
 surface, then the fingers open slowly so the pad makes the final, force-limited contact. Between
 touches the arm moves straight when the targets are close around the object's vertical axis and
 otherwise detours through a safe height above the shape estimate. Straight-line motions are
-checked at poses ``path_check_step_m`` apart (workspace, reach, joint continuity, clearance).
+checked at poses ``path_check_step_m`` apart (workspace, reach, joint continuity, clearance:
+``motion.lines``). Singularities are planned around: a touch may roll the tool about its
+approach line, and a transit or retract line that passes too near one becomes a checked joint
+move to the same pose.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
 from controller.config import LimitsConfig, MotionConfig
-from controller.motion.safety import (
-    Obstacles,
-    SafetyViolation,
-    check_pose,
-    check_reachable,
-    check_speed,
+from controller.motion.lines import TOOL_REACH_M as TOOL_REACH_M
+from controller.motion.lines import (
+    CheckedMotions,
+    SingularityViolation,
+    Waypoint,
+    first_allowed,
+    tool_reach_along,
 )
+from controller.motion.safety import Obstacles, SafetyViolation, check_pose, check_reachable
 from drivers.config import ArmConfig
 from drivers.tool import ToolModel
 from drivers.ur5.kinematics import forward_kinematics
@@ -46,42 +51,37 @@ estimate itself (the force readings guard it)."""
 APPROACH_NEAR_PARTS = ("gelsight_housing", "finger_sensor_side")
 """On the approach these may come up to where the object may be, without the margin: they sit
 behind the gel, but no force reading guards them (an edge can meet the housing first)."""
-TOOL_REACH_M = 0.17
-"""Flange to fingertip: a radian of tool rotation sweeps the tip about this far."""
-MIN_LINE_SPEED_M_S = 0.002
-"""A line whose joint rates would force the TCP slower than this passes a singularity."""
-JOINT_STEP_RESOLUTION_RAD = 0.02
-"""Between two checked poses whose joints differ by more than this, the line is bisected (IK
-only) to find the fastest joint rate: near a wrist singularity the rate peaks between poses."""
-MAX_BISECTIONS = 10
-PURE_TURN_M = 0.001
-"""A line moving the TCP less than this is timed by its rotation."""
 DETOUR_BACK_OFFS_M = (0.0, 0.05, 0.1)
 """How much further back along the approach line a detour may come down before moving in."""
 AT_POSE_TOLERANCE_M = 0.001
 AT_POSE_TOLERANCE_RAD = 0.01
 """The arm counts as at a pose (home) this near it: well above the arm's repeatability, well
 below anything that changes what the camera sees or where a path starts."""
-MAX_LINE_ROTATION_RAD = np.pi / 2
-"""Detours turn the tool at most this much per straight line: a half-turn has no unique
-shortest rotation, so the planner and the arm could interpolate it differently."""
+TOUCH_ROLLS_RAD = tuple(np.radians(d) for d in (0.0, 30.0, -30.0, 60.0, -60.0))
+"""Rolls of the tool about the approach line a touch tries, preferred first: rolled, the wrist
+is away from a singularity the unrolled tool meets. Never a half-turn: the gripper body would
+then hang below the pad, toward the table."""
+APPROACH_EXTENSIONS_M = (0.0, 0.03, 0.06, 0.1)
+"""How much further back than ``approach_distance_m`` an approach may start when where the object
+may be (seen from one view, its hidden back is a deep shadow) reaches the usual start."""
 
 
 def pad_pose_facing(
-    point_world: ArrayLike, normal_world: ArrayLike, standoff_m: float
+    point_world: ArrayLike, normal_world: ArrayLike, standoff_m: float, roll_rad: float = 0.0
 ) -> FloatArray:
     """Pad pose with the gel facing a surface point from ``standoff_m`` along its normal.
 
     The pad's +z (gel normal) points against the surface normal. Its +x (along the finger,
     toward the tip) points as far down as the surface allows, so that on a side touch the
-    gripper body stays above the pad, and on a top touch the fingers lie horizontal.
+    gripper body stays above the pad, and on a top touch the fingers lie horizontal; then
+    turned by ``roll_rad`` about the gel normal.
     """
     normal = np.asarray(normal_world, dtype=float)
     normal = normal / np.linalg.norm(normal)
     pad_z = -normal
     down = np.array([0.0, 0.0, -1.0])
     x_hint = down if abs(np.dot(down, pad_z)) < 0.95 else np.cross(pad_z, [0.0, 1.0, 0.0])
-    rotation = frame_from_z_axis(pad_z, x_hint)
+    rotation = frame_from_z_axis(pad_z, x_hint) @ Rotation.from_rotvec([0, 0, roll_rad]).as_matrix()
     return make_transform(rotation, np.asarray(point_world, dtype=float) + standoff_m * normal)
 
 
@@ -91,19 +91,10 @@ def tcp_pose_for_pad(pose_world_pad: FloatArray, tool: ToolModel, width_m: float
 
 
 @dataclass(frozen=True)
-class Waypoint:
-    """A checked straight-line motion target: flange pose, its joints, and the speed to use."""
-
-    pose_world_tcp: FloatArray
-    joints_rad: FloatArray
-    speed_m_s: float
-    label: str
-
-
-@dataclass(frozen=True)
 class TouchGeometry:
     """Where a touch happens. ``direction_world`` is the approach direction (the pad's +z);
-    the pad centre sweeps from ``pad_start_world`` up to ``pad_reach_world`` at the most."""
+    the pad centre sweeps from ``pad_start_world`` up to ``pad_reach_world`` at the most.
+    ``roll_rad``: how far the tool is turned about the approach line."""
 
     target_world: FloatArray
     direction_world: FloatArray
@@ -111,9 +102,22 @@ class TouchGeometry:
     pose_world_tcp_standoff: FloatArray
     pad_start_world: FloatArray
     pad_reach_world: FloatArray
+    roll_rad: float = 0.0
 
 
-class MotionPlanner:
+@dataclass(frozen=True)
+class TouchPlan:
+    """A touch's checked motions: the transit to the approach start (empty when the arm is
+    there) and the approach, at the tool roll ``roll_rad`` (``touch.roll_rad``) whose transit,
+    approach and retract were all accepted."""
+
+    touch: TouchGeometry
+    transit: list[Waypoint]
+    approach: Waypoint
+    roll_rad: float
+
+
+class MotionPlanner(CheckedMotions):
     """Plans checked waypoints for touches and transits; holds no robot state."""
 
     def __init__(
@@ -126,22 +130,29 @@ class MotionPlanner:
         stroke_m: float,
         object_point_world: ArrayLike = (0.0, 0.0, 0.0),
     ) -> None:
-        self.tool = tool
-        self.limits = limits
-        self.motion = motion
-        self.pose_world_base = pose_world_base
+        super().__init__(tool=tool, limits=limits, motion=motion, pose_world_base=pose_world_base)
         self.stroke_m = stroke_m
         self.object_point_world = np.asarray(object_point_world, dtype=float)
 
-    def touch_geometry(self, target_world: ArrayLike, direction_world: ArrayLike) -> TouchGeometry:
-        """Approach start and stand-off for a target approached along ``direction_world``."""
+    def touch_geometry(
+        self,
+        target_world: ArrayLike,
+        direction_world: ArrayLike,
+        roll_rad: float = 0.0,
+        approach_distance_m: float | None = None,
+    ) -> TouchGeometry:
+        """Approach start and stand-off for a target approached along ``direction_world``, the
+        pad (and so the whole tool) turned by ``roll_rad`` about the approach line, the start
+        ``approach_distance_m`` from the target (the configured distance by default)."""
         target = np.asarray(target_world, dtype=float)
         direction = np.asarray(direction_world, dtype=float)
         direction = direction / np.linalg.norm(direction)
         motion = self.motion
         width = motion.touch_width_m
-        pad_start = pad_pose_facing(target, -direction, motion.approach_distance_m)
-        pad_standoff = pad_pose_facing(target, -direction, motion.standoff_m)
+        if approach_distance_m is None:
+            approach_distance_m = motion.approach_distance_m
+        pad_start = pad_pose_facing(target, -direction, approach_distance_m, roll_rad)
+        pad_standoff = pad_pose_facing(target, -direction, motion.standoff_m, roll_rad)
         finger_travel_m = (self.stroke_m - width) / 2
         return TouchGeometry(
             target_world=target,
@@ -150,6 +161,7 @@ class MotionPlanner:
             pose_world_tcp_standoff=tcp_pose_for_pad(pad_standoff, self.tool, width),
             pad_start_world=pad_start[:3, 3],
             pad_reach_world=pad_standoff[:3, 3] + finger_travel_m * direction,
+            roll_rad=float(roll_rad),
         )
 
     def plan_approach(
@@ -182,8 +194,24 @@ class MotionPlanner:
     ) -> Waypoint:
         """Back out along the approach line, from where the arm is on it (at the stand-off, or
         where the pad touched on the way) to the approach start: the way it came, so only the
-        table is checked."""
-        return self.line(
+        table is checked. When that line passes too near a singularity (the arm's joints are not
+        those the approach was planned with), a checked joint move back to the approach start
+        instead. That need not follow the line, and a wrist turning over near the surface would
+        sweep the tool into it: no part of the tool may come further along the approach
+        direction than the tool reaches where it starts (so it never nears the touched surface
+        and, on a convex object, stays clear of it); the table is checked as for the line."""
+        direction = touch.direction_world
+        width = self.motion.touch_width_m
+        limit = tool_reach_along(pose_world_tcp, width, self.tool, direction)
+
+        def no_nearer(pose: FloatArray) -> None:
+            ahead = tool_reach_along(pose, width, self.tool, direction) - limit
+            if ahead > 1e-9:
+                raise SafetyViolation(
+                    f"the tool would come {ahead * 1e3:.1f} mm nearer the touched surface"
+                )
+
+        return self.line_or_joints(
             pose_world_tcp,
             touch.pose_world_tcp_start,
             joints_rad,
@@ -192,7 +220,119 @@ class MotionPlanner:
             label="retract",
             exempt_parts=APPROACH_EXEMPT_PARTS,
             near_parts=APPROACH_NEAR_PARTS,
+            joint_move_check=no_nearer,
         )
+
+    def plan_touch(
+        self,
+        pose_world_tcp: FloatArray,
+        joints_rad: FloatArray,
+        target_world: ArrayLike,
+        direction_world: ArrayLike,
+        obstacles: Obstacles,
+        *,
+        came_from: Sequence[FloatArray] = (),
+        rolls_rad: Sequence[float] = TOUCH_ROLLS_RAD,
+    ) -> TouchPlan:
+        """A touch's transit (``plan_transit``) and approach from the current flange pose and
+        joints, at the first roll of ``rolls_rad`` whose transit, approach and retract (the
+        approach line reversed) are all accepted. SafetyViolation with the first roll's
+        refusal when every roll is refused."""
+        refusals: list[SafetyViolation] = []
+        for roll in rolls_rad:
+            try:
+                touch = self._clear_start(
+                    target_world, direction_world, roll, joints_rad, obstacles
+                )
+                # Cheap first: only a singularity depends on the joints the transit ends with.
+                self._approach_and_retract(touch, joints_rad, obstacles)
+            except SingularityViolation:
+                pass
+            except SafetyViolation as violation:
+                refusals.append(violation)
+                continue
+            try:
+                transit = self.plan_transit(
+                    pose_world_tcp, joints_rad, touch, obstacles, came_from=came_from
+                )
+                joints = transit[-1].joints_rad if transit else joints_rad
+                approach = self._approach_and_retract(touch, joints, obstacles)
+            except SafetyViolation as violation:
+                refusals.append(violation)
+                continue
+            return TouchPlan(touch, transit, approach, float(roll))
+        raise _refused_at_every_roll(refusals, rolls_rad)
+
+    def check_touch(
+        self,
+        target_world: ArrayLike,
+        direction_world: ArrayLike,
+        joints_near_rad: FloatArray,
+        obstacles: Obstacles,
+        *,
+        rolls_rad: Sequence[float] = TOUCH_ROLLS_RAD,
+    ) -> float:
+        """The cheap check of a touch before choosing it: the first roll of ``rolls_rad`` whose
+        approach (from the approach start's joints nearest ``joints_near_rad``) and retract
+        are accepted; the transit is not planned. SafetyViolation with the first roll's
+        refusal when every roll is refused."""
+        refusals: list[SafetyViolation] = []
+        for roll in rolls_rad:
+            try:
+                touch = self._clear_start(
+                    target_world, direction_world, roll, joints_near_rad, obstacles
+                )
+                self._approach_and_retract(touch, joints_near_rad, obstacles)
+            except SafetyViolation as violation:
+                refusals.append(violation)
+                continue
+            return float(roll)
+        raise _refused_at_every_roll(refusals, rolls_rad)
+
+    def _clear_start(
+        self,
+        target_world: ArrayLike,
+        direction_world: ArrayLike,
+        roll_rad: float,
+        joints_near_rad: FloatArray,
+        obstacles: Obstacles,
+    ) -> TouchGeometry:
+        """The touch geometry at the configured approach distance or, when its start is not
+        clear of where the object may be, the nearest of ``APPROACH_EXTENSIONS_M`` further back
+        whose start is: the approach then crosses that region in its force-checked steps."""
+        refusal: SafetyViolation | None = None
+        for extension_m in APPROACH_EXTENSIONS_M:
+            touch = self.touch_geometry(
+                target_world,
+                direction_world,
+                roll_rad,
+                self.motion.approach_distance_m + extension_m,
+            )
+            try:
+                check_pose(
+                    touch.pose_world_tcp_start,
+                    self.motion.touch_width_m,
+                    tool=self.tool,
+                    obstacles=obstacles,
+                    limits=self.limits,
+                    pose_world_base=self.pose_world_base,
+                    joints_near_rad=joints_near_rad,
+                )
+                return touch
+            except SafetyViolation as violation:
+                refusal = refusal or violation
+        assert refusal is not None
+        raise refusal
+
+    def _approach_and_retract(
+        self, touch: TouchGeometry, joints_near_rad: FloatArray, obstacles: Obstacles
+    ) -> Waypoint:
+        """The approach from the approach start's joints nearest those given, once its retract
+        from the stand-off is accepted too."""
+        joints = check_reachable(touch.pose_world_tcp_start, self.pose_world_base, joints_near_rad)
+        approach = self.plan_approach(touch, joints, obstacles)
+        self.plan_retract(touch, touch.pose_world_tcp_standoff, approach.joints_rad)
+        return approach
 
     def plan_transit(
         self,
@@ -204,7 +344,8 @@ class MotionPlanner:
         came_from: Sequence[FloatArray] = (),
     ) -> list[Waypoint]:
         """From the current flange pose to the touch's approach start: straight when the radial
-        angle between here and the target is small and the line is clear, else a detour.
+        angle between here and the target is small and the line is clear, else a detour (a line
+        of either that passes too near a singularity is a joint move to its end instead).
         ``came_from`` lists the poses the arm passed through to get here (oldest first): when
         the estimate, refined since, blocks every way out, the arm goes back along them (it
         has been there, so only the table is checked) until a detour is possible."""
@@ -216,7 +357,7 @@ class MotionPlanner:
         if angle <= np.radians(self.motion.direct_move_max_angle_deg):
             try:
                 return [
-                    self.line(
+                    self.line_or_joints(
                         pose_world_tcp, goal, joints_rad, obstacles, speed_m_s=speed, label="direct"
                     )
                 ]
@@ -281,7 +422,7 @@ class MotionPlanner:
             stops = [(down_to, "descend"), (goal_world_tcp, "in")]
             return way + self._lines(above, end_joints, stops, obstacles)
 
-        return waypoints + _first_allowed(partial(via, b) for b in DETOUR_BACK_OFFS_M)
+        return waypoints + first_allowed(partial(via, b) for b in DETOUR_BACK_OFFS_M)
 
     def _leave_upward(
         self, pose_world_tcp: FloatArray, joints_rad: FloatArray, z_m: float, obstacles: Obstacles
@@ -297,64 +438,7 @@ class MotionPlanner:
             up[2, 3] = max(z_m, back[2, 3])
             return self._lines(pose_world_tcp, joints_rad, [(back, "back"), (up, "lift")], leaving)
 
-        return _first_allowed(partial(via, b) for b in DETOUR_BACK_OFFS_M)
-
-    def _turning_line(
-        self,
-        start_world_tcp: FloatArray,
-        end_world_tcp: FloatArray,
-        joints_rad: FloatArray,
-        obstacles: Obstacles,
-        *,
-        label: str,
-    ) -> list[Waypoint]:
-        """A straight TCP line that may turn the tool a lot, as lines of at most
-        ``MAX_LINE_ROTATION_RAD`` each: turning one way round and, if that is refused, the
-        other (e.g. past a wrist singularity one way)."""
-        if np.allclose(start_world_tcp, end_world_tcp):
-            return []
-        start = Rotation.from_matrix(start_world_tcp[:3, :3])
-        turn = Rotation.from_matrix(end_world_tcp[:3, :3]) * start.inv()
-        rotvec = turn.as_rotvec()
-        angle = float(np.linalg.norm(rotvec))
-        ways = [rotvec]
-        if angle > MAX_LINE_ROTATION_RAD:
-            ways.append(rotvec - 2 * np.pi * rotvec / angle)  # the same turn the other way round
-
-        def turning(way: FloatArray) -> list[Waypoint]:
-            pieces = max(1, int(np.ceil(np.linalg.norm(way) / MAX_LINE_ROTATION_RAD - 1e-9)))
-            stops = []
-            for piece in range(1, pieces + 1):
-                fraction = piece / pieces
-                rotation = (Rotation.from_rotvec(fraction * way) * start).as_matrix()
-                position = start_world_tcp[:3, 3] + fraction * (
-                    end_world_tcp[:3, 3] - start_world_tcp[:3, 3]
-                )
-                end = end_world_tcp if piece == pieces else make_transform(rotation, position)
-                stops.append((end, label))
-            return self._lines(start_world_tcp, joints_rad, stops, obstacles)
-
-        return _first_allowed(partial(turning, way) for way in ways)
-
-    def _lines(
-        self,
-        start_world_tcp: FloatArray,
-        joints_rad: FloatArray,
-        stops: Sequence[tuple[FloatArray, str]],
-        obstacles: Obstacles,
-    ) -> list[Waypoint]:
-        """Checked straight lines at the TCP speed limit from the start through each
-        (pose, label) stop in turn; a stop where the arm already is adds none."""
-        waypoints: list[Waypoint] = []
-        pose, joints = start_world_tcp, joints_rad
-        speed = self.limits.max_tcp_speed_m_s
-        for end, label in stops:
-            if not np.allclose(pose, end):
-                waypoints.append(
-                    self.line(pose, end, joints, obstacles, speed_m_s=speed, label=label)
-                )
-                pose, joints = end, waypoints[-1].joints_rad
-        return waypoints
+        return first_allowed(partial(via, b) for b in DETOUR_BACK_OFFS_M)
 
     def plan_retreat(
         self,
@@ -362,14 +446,19 @@ class MotionPlanner:
         joints_rad: FloatArray,
         *,
         back_to_world_tcp: FloatArray | None,
+        back_to_joints_rad: FloatArray | None = None,
     ) -> list[Waypoint]:
         """Where the arm goes after a fault, an abort or at the end of a session: back to where
         the interrupted motion started (the way it came, known to be clear) or, with no motion
         interrupted (None), nowhere: the arm stays. Never to a pose relative to where the arm
-        is, so repeated faults cannot walk it away step by step. Then ``plan_lift``."""
+        is, so repeated faults cannot walk it away step by step. Then ``plan_lift``. An
+        interrupted joint move gives its start joints, ``back_to_joints_rad``: the way back is
+        then a joint move to them, the same joint path reversed."""
         if back_to_world_tcp is None or np.allclose(back_to_world_tcp, pose_world_tcp):
             return []
         # Retracing: the shape estimate may be wrong right here, the table is not.
+        if back_to_joints_rad is not None:
+            return [self.joint_move(joints_rad, back_to_joints_rad, Obstacles.none(), "retreat")]
         return [
             self.line(
                 pose_world_tcp,
@@ -423,101 +512,8 @@ class MotionPlanner:
             return Obstacles(obstacles.occupied_points_world)
         return obstacles
 
-    def line(
-        self,
-        start_world_tcp: FloatArray,
-        end_world_tcp: FloatArray,
-        joints_rad: FloatArray,
-        obstacles: Obstacles,
-        *,
-        speed_m_s: float,
-        label: str,
-        exempt_parts: tuple[str, ...] = (),
-        near_parts: tuple[str, ...] = (),
-    ) -> Waypoint:
-        """A checked straight TCP line (slerped orientation, as moveL moves): every pose
-        ``path_check_step_m`` apart passes the safety checks, and the speed is lowered so that
-        no joint turns faster than ``max_joint_speed_rad_s`` (the fastest joint rate is found by
-        bisecting where the joints turn fast). SafetyViolation on the first failing pose, or
-        when the line passes so near a singularity that the TCP would have to crawl."""
-        check_speed(speed_m_s, self.limits.max_tcp_speed_m_s)
-        distance = float(np.linalg.norm(end_world_tcp[:3, 3] - start_world_tcp[:3, 3]))
-        angle = rotation_angle_between(start_world_tcp[:3, :3], end_world_tcp[:3, :3])
-        length = max(distance, TOOL_REACH_M * angle)
-        steps = max(1, int(np.ceil(length / self.motion.path_check_step_m)))
-        rotations = Rotation.from_matrix(np.stack([start_world_tcp[:3, :3], end_world_tcp[:3, :3]]))
-        slerp = Slerp([0.0, 1.0], rotations)
-
-        def pose_at(fraction: float) -> FloatArray:
-            return make_transform(
-                slerp(fraction).as_matrix(),
-                start_world_tcp[:3, 3] + fraction * (end_world_tcp[:3, 3] - start_world_tcp[:3, 3]),
-            )
-
-        # The joints at the start pose (nearest those given): rates are measured from there.
-        joints = check_reachable(start_world_tcp, self.pose_world_base, joints_rad)
-        joint_rad_per_fraction = 0.0
-        previous = 0.0
-        for fraction in np.linspace(0.0, 1.0, steps + 1)[1:]:
-            try:
-                next_joints = check_pose(
-                    pose_at(fraction),
-                    self.motion.touch_width_m,
-                    tool=self.tool,
-                    obstacles=obstacles,
-                    limits=self.limits,
-                    pose_world_base=self.pose_world_base,
-                    joints_near_rad=joints,
-                    exempt_parts=exempt_parts,
-                    near_parts=near_parts,
-                )
-            except SafetyViolation as violation:
-                raise SafetyViolation(f"{label}: {violation}") from None
-            joint_rad_per_fraction = max(
-                joint_rad_per_fraction,
-                self._peak_joint_rate(pose_at, previous, fraction, joints, next_joints),
-            )
-            joints, previous = next_joints, fraction
-        if joint_rad_per_fraction > 0:
-            # The line must last at least (largest joint turn per unit of the line) / (joint
-            # speed limit); at the TCP speed it lasts at least distance / speed. (A pure turn is
-            # timed by the tool's reach instead.)
-            seconds = joint_rad_per_fraction / self.limits.max_joint_speed_rad_s
-            travel = distance if distance >= PURE_TURN_M else TOOL_REACH_M * angle
-            speed_m_s = min(speed_m_s, travel / seconds)
-        if speed_m_s < MIN_LINE_SPEED_M_S:
-            raise SafetyViolation(
-                f"{label}: line to {np.round(end_world_tcp[:3, 3], 3).tolist()} m passes near a "
-                "singularity (joints would turn too fast)"
-            )
-        return Waypoint(end_world_tcp, joints, speed_m_s, label)
-
-    def _peak_joint_rate(
-        self,
-        pose_at: Callable[[float], FloatArray],
-        start: float,
-        end: float,
-        start_joints: FloatArray,
-        end_joints: FloatArray,
-        bisections: int = MAX_BISECTIONS,
-    ) -> float:
-        """The largest joint turn per unit of line fraction between two fractions, bisecting
-        (IK only) while the joints between them differ by more than the resolution."""
-        turn = float(np.max(np.abs(end_joints - start_joints)))
-        if turn <= JOINT_STEP_RESOLUTION_RAD or bisections == 0:
-            return turn / (end - start)
-        middle = (start + end) / 2
-        middle_joints = check_reachable(pose_at(middle), self.pose_world_base, start_joints)
-        left = self._peak_joint_rate(
-            pose_at, start, middle, start_joints, middle_joints, bisections - 1
-        )
-        right = self._peak_joint_rate(
-            pose_at, middle, end, middle_joints, end_joints, bisections - 1
-        )
-        return max(left, right)
-
     def _estimate_top_m(self, obstacles: Obstacles) -> float:
-        points = obstacles.possible
+        points = obstacles.keep_out
         return float(points[:, 2].max()) if len(points) else 0.0
 
     def _flange_height_clearing(self, pose_world_tcp: FloatArray, top_m: float) -> float:
@@ -546,15 +542,12 @@ def at_pose(pose_world_tcp: FloatArray, goal_world_tcp: FloatArray) -> bool:
     return distance <= AT_POSE_TOLERANCE_M and angle <= AT_POSE_TOLERANCE_RAD
 
 
-def _first_allowed(candidates: Iterable[Callable[[], list[Waypoint]]]) -> list[Waypoint]:
-    """The first candidate path the safety checks accept, tried in order; when all are
-    refused, the first refusal (the preferred path's reason)."""
-    refusal: SafetyViolation | None = None
-    for plan in candidates:
-        try:
-            return plan()
-        except SafetyViolation as violation:
-            refusal = refusal or violation
-    if refusal is None:
-        raise ValueError("no candidate paths to try")
-    raise refusal
+def _refused_at_every_roll(
+    refusals: Sequence[SafetyViolation], rolls_rad: Sequence[float]
+) -> SafetyViolation:
+    """The first (preferred) roll's refusal, saying that the other rolls were refused too."""
+    if not refusals:
+        raise ValueError("no rolls to try")
+    others = ", ".join(f"{np.degrees(roll):+.0f}" for roll in rolls_rad[1:])
+    tried = f" (rolled {others} degrees about the approach: refused too)" if others else ""
+    return type(refusals[0])(f"{refusals[0]}{tried}")

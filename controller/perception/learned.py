@@ -24,6 +24,7 @@ import torch
 from controller.config import Config
 from controller.perception.protocol import (
     ShapeEstimate,
+    TargetFilter,
     TouchMeasurement,
     TouchOutcome,
     TouchTarget,
@@ -175,12 +176,15 @@ class LearnedPerception:
         request: ExploreRequest,
         outcomes: list[TouchOutcome],
         allowed: Callable[[TouchTarget], bool],
+        feasible: TargetFilter | None = None,
     ) -> TouchTarget | None:
         # What the touches measured is known: the policy sees it written into the estimate, so
         # the windows they answered are confident and are not chosen again.
         grid = estimate.grid
         known = direct_edit(estimate.probabilities, self.constraints(outcomes, grid))
+        filters = [] if feasible is None else [feasible]
         feasible = all_of(
+            *filters,
             above_table_filter(
                 self.config.motion.approach_distance_m, self.config.limits.table_clearance_m
             ),

@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 from controller.request import ExploreRequest
 from drivers.base import RGBDFrame, TactileFrame
 from models.geometry import VoxelGrid
+from models.touch.policy import TargetFilter
 
 FloatArray = NDArray[np.float64]
 
@@ -101,8 +102,11 @@ class Perception(Protocol):
         request: ExploreRequest,
         outcomes: list[TouchOutcome],
         allowed: Callable[[TouchTarget], bool],
+        feasible: TargetFilter | None = None,
     ) -> TouchTarget | None:
-        """The next touch among those ``allowed`` accepts; None when nothing is worth touching."""
+        """The next touch among those ``allowed`` accepts; None when nothing is worth touching.
+        ``feasible`` (vectorised, cheap) narrows the candidates first: a policy that searches
+        many windows uses it to pick among those that pass."""
         ...
 
     def interpret(self, measurement: TouchMeasurement) -> TouchOutcome: ...

@@ -109,6 +109,9 @@ class SimUR5(Arm):
         self._moving = False
         self._stop_requested = False
         self._protective_stop_at_s: float | None = None
+        self.protective_stops: list[Collision] = []
+        """Every collision that put the arm in protective stop, oldest first: a session that
+        recovers from one leaves no other trace of it (the safety benchmark counts them)."""
 
     @property
     def is_connected(self) -> bool:
@@ -260,6 +263,7 @@ class SimUR5(Arm):
                     raise DeviceNotConnectedError("arm closed during a move")
                 if collision is not None:
                     self._protective_stop_at_s = self._world.clock.now_s
+                    self.protective_stops.append(collision)
                     raise ProtectiveStopError(
                         f"protective stop: {collision.part} hit the {collision.obstacle}"
                     )

@@ -211,6 +211,7 @@ class FirstTargetUnderTheTable(CylinderPerception):
         request: ExploreRequest,
         outcomes: list[TouchOutcome],
         allowed: Callable[[TouchTarget], bool],
+        feasible: object = None,
     ) -> TouchTarget | None:
         self.calls += 1
         if self.calls == 1:
@@ -256,6 +257,7 @@ class OnlyOutsideTheWorkspace(CylinderPerception):
         request: ExploreRequest,
         outcomes: list[TouchOutcome],
         allowed: Callable[[TouchTarget], bool],
+        feasible: object = None,
     ) -> TouchTarget | None:
         if getattr(self, "proposed", False):
             return None

@@ -54,6 +54,7 @@ class CylinderPerception:
         request: ExploreRequest,
         outcomes: list[TouchOutcome],
         allowed: Callable[[TouchTarget], bool],
+        feasible: object = None,
     ) -> TouchTarget | None:
         occupied = estimate.occupied_points_world()
         radius = np.max(np.linalg.norm(occupied[:, :2], axis=1))

@@ -73,7 +73,7 @@ async def test_the_bound_keeps_out_of_what_the_camera_sees_free() -> None:
     toward_camera = (camera - front) * [1.0, 1.0, 0.0]
     toward_camera /= np.linalg.norm(toward_camera)
     nearest_front = front + (0.5 * mesh.extents[:2].max() + 0.03) * toward_camera
-    above = front + [0.0, 0.0, 0.5 * mesh.extents[2] + 0.05]
+    above = front + np.array([0.0, 0.0, 0.5 * mesh.extents[2] + 0.05])
     assert not bound.contains(np.array([nearest_front, above])).any()
     hull_voxels = mesh.convex_hull.volume / bound.grid.voxel_size_m**3
     assert bound.possible.sum() < 6 * hull_voxels
@@ -99,7 +99,7 @@ def test_touches_carve_it_and_the_estimate_only_adds() -> None:
     bound = ObjectBound(grid, possible, np.zeros(shape, dtype=bool))
 
     # A sweep 5 voxels wide through the block: its rim is only partly swept and stays.
-    swept = np.argwhere(np.ones((5, 5, 30), dtype=bool)) + [48, 48, 0]
+    swept = np.argwhere(np.ones((5, 5, 30), dtype=bool)) + np.array([48, 48, 0])
     carved = bound.carve(swept)
     assert not carved.possible[50, 50, 10] and not carved.possible[49, 49, 5]
     assert carved.possible[48, 50, 10] and carved.possible[40, 40, 10]
