@@ -32,6 +32,7 @@ from models.geometry import (
     rotation_angle_between,
     ur_pose_to_matrix,
 )
+from models.object_bound import ObjectBound
 from models.tactile.sim import GelSightSimulator
 
 CONFIG = Config()
@@ -351,3 +352,17 @@ def test_transit_retraces_the_way_the_arm_came_when_every_way_out_is_blocked() -
     assert waypoints[0].label == "retrace"
     np.testing.assert_allclose(waypoints[0].pose_world_tcp, above)
     np.testing.assert_allclose(waypoints[-1].pose_world_tcp, other.pose_world_tcp_start)
+
+
+def test_a_part_deep_inside_where_the_object_may_be_is_refused() -> None:
+    """Clearance is measured to the bound's surface; a part whose centre lies deep inside the
+    bound, far from that surface, is refused too (the bound is solid, not a shell)."""
+    grid = ObjectBound.cube((0.0, 0.0, 0.0))
+    possible = np.zeros((grid.resolution,) * 3, dtype=bool)
+    possible[10:90, 10:90, 0:90] = True  # a 32 cm block: its surface is far from the tool
+    bound = ObjectBound(grid, possible, np.zeros_like(possible))
+    obstacles = Obstacles(np.zeros((0, 3)), bound=bound)
+    assert len(obstacles.near(np.array([0.0, 0.0, 0.2]), 0.1)) == 0
+    with pytest.raises(SafetyViolation, match="inside where the object may be"):
+        check_clearance(tool_down_at(0.0, 0.0, 0.3), 0.08, TOOL, obstacles, LimitsConfig())
+    check_clearance(tool_down_at(0.0, 0.0, 0.55), 0.08, TOOL, obstacles, LimitsConfig())
