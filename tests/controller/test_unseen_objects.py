@@ -19,7 +19,7 @@ from controller.benchmarks.safety import (
 )
 from controller.config import Config
 from controller.perception.learned import make_perception
-from controller.perception.protocol import ShapeEstimate
+from controller.perception.protocol import ShapeEstimate, TouchTarget
 from controller.request import ExploreRequest
 from drivers.factory import Devices
 from tests.fakes.perception import CylinderPerception
@@ -29,7 +29,7 @@ MIN_TRANSIT_CLEARANCE_MM = 5.0
 
 class HalfSizePerception(CylinderPerception):
     """A prior that sees the object at half its true size (a cylinder half as wide and half as
-    tall): its targets lie inside the object and its surface is far inside the true one."""
+    tall): its surface, and its targets, lie far inside the true object."""
 
     def reconstruct(self, frame, request) -> ShapeEstimate:  # type: ignore[no-untyped-def]
         centres = self.grid.voxel_centres_world()
@@ -37,6 +37,20 @@ class HalfSizePerception(CylinderPerception):
         height = 0.5 * self.mesh.bounds[1, 2]
         inside = (np.linalg.norm(centres[..., :2], axis=-1) <= radius) & (centres[..., 2] <= height)
         return ShapeEstimate(self.grid, np.where(inside, 0.9, 0.02).astype(np.float32))
+
+    def select(self, estimate, request, outcomes, allowed, feasible=None):  # type: ignore[no-untyped-def]
+        """Side touches just below the estimate's top, around its axis (the gripper body, a
+        finger's length above the pad, must pass above the true object)."""
+        occupied = estimate.occupied_points_world()
+        radius = np.max(np.linalg.norm(occupied[:, :2], axis=1))
+        height = occupied[:, 2].max() - 0.005
+        for yaw_deg in range(0, 360, 45):
+            yaw = np.radians(yaw_deg + 45 * len(outcomes))
+            outward = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+            target = TouchTarget(radius * outward + [0.0, 0.0, height], -outward)
+            if allowed(target):
+                return target
+        return None
 
 
 def config_with(object_spec: str) -> Config:
@@ -54,14 +68,18 @@ async def explore(config: Config, factory, tmp_path: Path, touches: int) -> tupl
 async def test_a_prior_half_the_true_size_cannot_make_a_transit_hit_the_object(
     tmp_path: Path,
 ) -> None:
-    """A 20 cm bottle seen as a 10 cm stub: a detour planned above the estimate would cross the
-    bottle's neck. Every transit keeps its clearance from the true bottle, and the approaches,
-    aimed inside it, meet it on their force-checked way."""
+    """A 20 x 20 x 12 cm box seen at half its size: a detour planned over the estimate would
+    cross the box's top, an approach start beside the estimate would lie in its corner. Every
+    transit keeps its clearance from the true box, and the approaches, aimed inside it, meet
+    it on their force-checked way."""
+    box = trimesh.creation.box((0.2, 0.2, 0.12))
+    path = tmp_path / "box.obj"
+    box.export(path)
 
     def perception(config: Config, devices: Devices) -> HalfSizePerception:
         return HalfSizePerception(config, devices)
 
-    config = config_with("bottle")
+    config = config_with(str(path))
     run, row = await explore(config, perception, tmp_path, touches=3)
     assert run.summary is not None
     assert run.summary["state"] == "done", run.summary["error"]
