@@ -56,6 +56,9 @@ MISSED_LINE_ANGLE_DEG = 30.0
 """After a touch met nothing, a target within this distance of its line, approached within this
 angle of its direction, would be a near repeat: it is not proposed."""
 MAX_SKIPPED_RECORDS = 200
+PAD_RADIUS_M = 0.007
+"""The measured surface within this distance of a target's approach line is what the gel's
+window (19 x 14 mm) meets first."""
 
 
 class SessionFault(RuntimeError):
@@ -309,9 +312,11 @@ class ExplorationSession:
         return State.DONE
 
     def _onto_measured(self, target: TouchTarget) -> TouchTarget | None:
-        """The target moved along its approach line to where the measured bound begins, when
-        the estimate put it in front of that (in space seen free: the pad would sweep through
-        nothing there); None when the pad's path misses the bound altogether (a sure miss)."""
+        """The target moved along its approach line onto what was measured: back to the
+        measured surface when the estimate put it behind that (the gel meets the surface
+        first), forward to where the measured bound begins when the estimate put it in space
+        seen free (the pad would sweep through nothing); None when the pad's path misses the
+        bound altogether (a sure miss)."""
         if self.measured is None:
             return target
         direction = target.direction_world / np.linalg.norm(target.direction_world)
@@ -321,7 +326,13 @@ class ExplorationSession:
         first = self.measured.first_along(start, direction, distance + reach)
         if first is None:
             return None
-        if first <= distance:
+        surface = self.measured.surface_points_world - start
+        along = surface @ direction
+        lateral = np.linalg.norm(surface - along[:, None] * direction, axis=1)
+        ahead = along[(along > 0) & (lateral <= PAD_RADIUS_M)]
+        if len(ahead) and ahead.min() < distance:
+            first = float(ahead.min())
+        elif first <= distance:
             return target
         return dataclasses.replace(target, target_world=start + first * direction)
 

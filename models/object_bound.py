@@ -24,7 +24,7 @@ possible voxel centres under-estimate clearance by at most half a voxel diagonal
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
@@ -55,6 +55,7 @@ itself does not; the tool keeps its table clearance below that anyway)."""
 HIDDEN_DEPTH_FACTOR = 1.0
 """The object may reach this many times its larger seen extent (width or height) behind what
 the camera sees of it (one view cannot tell its depth); capped by :data:`MAX_HIDDEN_DEPTH_M`."""
+SURFACE_SPACING_M = 0.002
 MIN_HIDDEN_DEPTH_M = 0.03
 MAX_HIDDEN_DEPTH_M = 0.30
 
@@ -67,6 +68,9 @@ class ObjectBound:
     grid: VoxelGrid
     possible: NDArray[np.bool_]
     free: NDArray[np.bool_]
+    surface_points_world: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    """The object's measured surface: its depth points above the table in the cube, one per
+    :data:`SURFACE_SPACING_M` cell (none without depth)."""
 
     # --- construction ---------------------------------------------------------------------------
 
@@ -122,13 +126,16 @@ class ObjectBound:
         )
         occluder_z = np.full(len(z), -np.inf)
         occluder_z[seen] = heights[v[seen], u[seen]]
-        hidden = _hidden_depth_m(depth, intrinsics, pose, grid)
+        surface = _object_points(depth, intrinsics, pose, grid)
+        hidden = _hidden_depth_m(surface)
         shadow = (occluder_z > OCCLUDER_MIN_HEIGHT_M) & (z <= far + hidden + half_diagonal)
         possible = ~seen | (~seen_free & shadow)
         above_table = centres[:, 2] > -0.5 * grid.voxel_size_m
         possible &= above_table
         shape = (grid.resolution,) * 3
-        return cls(grid, possible.reshape(shape), np.zeros(shape, dtype=bool))
+        cells = np.unique(np.floor(surface / SURFACE_SPACING_M), axis=0)
+        surface_points = (cells + 0.5) * SURFACE_SPACING_M
+        return cls(grid, possible.reshape(shape), np.zeros(shape, dtype=bool), surface_points)
 
     @classmethod
     def from_box(cls, box: VoxelGrid, object_point_world: ArrayLike) -> ObjectBound:
@@ -235,28 +242,31 @@ def _height_image(
     return np.where(depth_m > 0, heights, -np.inf)
 
 
-def _hidden_depth_m(
+def _object_points(
     depth_m: FloatArray,
     intrinsics: CameraIntrinsics,
     pose_world_camera: FloatArray,
     grid: VoxelGrid,
-) -> float:
-    """How far behind its seen surface the object may reach: :data:`HIDDEN_DEPTH_FACTOR` times
-    the larger of the seen object's width and height (its depth points above the table in the
-    cube), in [:data:`MIN_HIDDEN_DEPTH_M`, :data:`MAX_HIDDEN_DEPTH_M`]."""
+) -> FloatArray:
+    """The depth points (world) standing above the table inside ``grid``'s cube."""
     v, u = np.nonzero(depth_m > 0)
     d = depth_m[v, u]
     camera = np.column_stack(
         [(u - intrinsics.cx) / intrinsics.fx * d, (v - intrinsics.cy) / intrinsics.fy * d, d]
     )
     points = camera @ pose_world_camera[:3, :3].T + pose_world_camera[:3, 3]
-    object_points = points[
-        (points[:, 2] > OCCLUDER_MIN_HEIGHT_M) & _inside_grid(grid, points, margin_voxels=0.0)
-    ]
-    if len(object_points) == 0:
+    above = (points[:, 2] > OCCLUDER_MIN_HEIGHT_M) & _inside_grid(grid, points, margin_voxels=0.0)
+    return points[above]
+
+
+def _hidden_depth_m(object_points_world: FloatArray) -> float:
+    """How far behind its seen surface the object may reach: :data:`HIDDEN_DEPTH_FACTOR` times
+    the larger of the seen object's width and height (from its depth points), in
+    [:data:`MIN_HIDDEN_DEPTH_M`, :data:`MAX_HIDDEN_DEPTH_M`]."""
+    if len(object_points_world) == 0:
         return MIN_HIDDEN_DEPTH_M
-    extent = np.ptp(object_points, axis=0)
-    seen = max(float(np.hypot(extent[0], extent[1])), float(object_points[:, 2].max()))
+    extent = np.ptp(object_points_world, axis=0)
+    seen = max(float(np.hypot(extent[0], extent[1])), float(object_points_world[:, 2].max()))
     return float(np.clip(HIDDEN_DEPTH_FACTOR * seen, MIN_HIDDEN_DEPTH_M, MAX_HIDDEN_DEPTH_M))
 
 

@@ -27,6 +27,9 @@ if TYPE_CHECKING:
 
 NEAR_PARTS_CLEARANCE_FRACTION = 0.25
 """``near_parts`` keep this fraction of ``shape_clearance_m`` from where the object may be."""
+PRISM_GROWTH_M = 0.004
+"""The prism ahead of the gel's window is grown by this much (a voxel of the object bound): a
+bound voxel whose centre lies just outside the window's footprint may hold surface inside it."""
 POSSIBLE_OCCUPANCY = 0.1
 """Voxels above this probability are where the object may be: transits, and the tool parts that
 do not lead into a touch, keep their clearance from them. The vision estimate (v > 0.5) is too
@@ -83,6 +86,11 @@ class Obstacles:
         possible points without a bound."""
         return self.possible if self.bound is None else self.bound.boundary_points_world
 
+    @property
+    def measured_surface(self) -> NDArray[np.float64]:
+        """The object's surface as the camera measured it (none without a bound)."""
+        return np.zeros((0, 3)) if self.bound is None else self.bound.surface_points_world
+
     def inside(self, point_world: NDArray[np.float64]) -> bool:
         """Whether a point lies inside the bound (where no surface point is near to tell)."""
         return self.bound is not None and bool(self.bound.contains(point_world)[0])
@@ -94,12 +102,13 @@ class Obstacles:
     def near(
         self, centre_world: NDArray[np.float64], radius_m: float, *, level: str = "keep_out"
     ) -> NDArray[np.float64]:
-        """The points of a level ("occupied", "possible" or "keep_out") within ``radius_m`` of
-        a point (a cheap pre-filter)."""
+        """The points of a level ("occupied", "possible", "keep_out" or "surface") within
+        ``radius_m`` of a point (a cheap pre-filter)."""
         points = {
             "occupied": self.occupied_points_world,
             "possible": self.possible,
             "keep_out": self.keep_out,
+            "surface": self.measured_surface,
         }[level]
         if len(points) == 0:
             return points
@@ -159,7 +168,13 @@ def check_clearance(
     the surface it is about to touch: ``near_parts`` keep a quarter of the margin from the
     estimate's possible points, ``exempt_parts`` (the part carrying the gel) may come up to the
     estimate itself."""
-    for box in tool.rigid_boxes(width_m):
+    boxes = tool.rigid_boxes(width_m)
+    leading = [
+        (pose_world_tcp @ box.pose_tcp_box, box.half_extents_m)
+        for box in boxes
+        if box.name in exempt_parts
+    ]
+    for box in boxes:
         pose_world_box = pose_world_tcp @ box.pose_tcp_box
         lowest_m = _lowest_point_z(pose_world_box, box)
         if lowest_m < limits.table_clearance_m:
@@ -169,24 +184,52 @@ def check_clearance(
             )
         centre = pose_world_box[:3, 3]
         if box.name in exempt_parts:
-            level, clearance, where = "occupied", 0.0, "the shape estimate"
+            checks = [("occupied", 0.0, "the shape estimate")]
         elif box.name in near_parts:
-            level, where = "possible", "the shape estimate"
+            # Behind the gel, no force reading guards these: they keep a little clearance from
+            # the estimate and from the surface the camera measured, except ahead of the gel's
+            # window, whose contact the approach feels first.
             clearance = NEAR_PARTS_CLEARANCE_FRACTION * limits.shape_clearance_m
+            checks = [
+                ("possible", clearance, "the shape estimate"),
+                ("surface", clearance, "the measured surface beside the gel"),
+            ]
         else:
-            level, clearance, where = (
-                "keep_out",
-                limits.shape_clearance_m,
-                "where the object may be",
-            )
+            where = "where the object may be"
+            checks = [("keep_out", limits.shape_clearance_m, where)]
             if obstacles.inside(centre):
                 raise SafetyViolation(f"{box.name} would be inside {where}")
-        reach = float(np.linalg.norm(box.half_extents_m)) + clearance
-        nearby = obstacles.near(centre, reach, level=level)
-        if _box_near_points(pose_world_box, box, nearby, clearance):
-            raise SafetyViolation(
-                f"{box.name} would come within {clearance * 1e3:.0f} mm of {where}"
-            )
+        for level, clearance, where in checks:
+            reach = float(np.linalg.norm(box.half_extents_m)) + clearance
+            nearby = obstacles.near(centre, reach, level=level)
+            if level == "surface":
+                nearby = _not_ahead_of(nearby, leading)
+            if _box_near_points(pose_world_box, box, nearby, clearance):
+                raise SafetyViolation(
+                    f"{box.name} would come within {clearance * 1e3:.0f} mm of {where}"
+                )
+
+
+def _not_ahead_of(
+    points_world: NDArray[np.float64],
+    leading: list[tuple[NDArray[np.float64], NDArray[np.float64]]],
+) -> NDArray[np.float64]:
+    """The points not in the prism a leading part (pose, half extents: the gel's window)
+    sweeps ahead of itself along the tool's +x (the pad's normal), grown by
+    :data:`PRISM_GROWTH_M`."""
+    if len(points_world) == 0 or not leading:
+        return points_world
+    keep = np.ones(len(points_world), dtype=bool)
+    grow = PRISM_GROWTH_M
+    for pose_world_box, half in leading:
+        local = transform_points(invert_transform(pose_world_box), points_world)
+        ahead = (
+            (local[:, 0] >= -half[0])
+            & (np.abs(local[:, 1]) <= half[1] + grow)
+            & (np.abs(local[:, 2]) <= half[2] + grow)
+        )
+        keep &= ~ahead
+    return points_world[keep]
 
 
 def check_pose(

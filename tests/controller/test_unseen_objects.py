@@ -68,11 +68,11 @@ async def explore(config: Config, factory, tmp_path: Path, touches: int) -> tupl
 async def test_a_prior_half_the_true_size_cannot_make_a_transit_hit_the_object(
     tmp_path: Path,
 ) -> None:
-    """A 20 x 20 x 12 cm box seen at half its size: a detour planned over the estimate would
+    """A 20 x 20 x 10 cm box seen at half its size: a detour planned over the estimate would
     cross the box's top, an approach start beside the estimate would lie in its corner. Every
     transit keeps its clearance from the true box, and the approaches, aimed inside it, meet
     it on their force-checked way."""
-    box = trimesh.creation.box((0.2, 0.2, 0.12))
+    box = trimesh.creation.box((0.2, 0.2, 0.1))
     path = tmp_path / "box.obj"
     box.export(path)
 
