@@ -56,6 +56,9 @@ MISSED_LINE_ANGLE_DEG = 30.0
 """After a touch met nothing, a target within this distance of its line, approached within this
 angle of its direction, would be a near repeat: it is not proposed."""
 MAX_SKIPPED_RECORDS = 200
+MAX_REFUSED_IN_A_ROW = 20
+"""Targets the planner refused at the approach one after another before the session stops:
+the checks at select passed them, so the policy could propose such targets without end."""
 PAD_RADIUS_M = 0.007
 """The measured surface within this distance of a target's approach line is what the gel's
 window (19 x 14 mm) meets first."""
@@ -138,6 +141,7 @@ class ExplorationSession:
         self.bound: ObjectBound | None = None
         """``measured`` and the shape estimate: what motions keep clear of."""
         self.stop_reason: str | None = None
+        self._refused_in_a_row = 0
         self.skipped: list[dict[str, Any]] = []
         """Targets not touched because no safe motion reaches them, with the reason."""
 
@@ -265,16 +269,18 @@ class ExplorationSession:
         assert self.estimate is not None
         if self.touch_count >= self.request.max_touches:
             return self._stop("the touch budget is spent")
+        if self._refused_in_a_row >= MAX_REFUSED_IN_A_ROW:
+            return self._stop(f"no safe, reachable target is left ({MAX_REFUSED_IN_A_ROW} refused)")
         obstacles = self._obstacles()
         joints = (await self._device(self.devices.arm.state())).joints_rad
 
         def allowed(target: TouchTarget) -> bool:
-            reason = self._near_earlier(target)
             moved = self._onto_measured(target)
             if moved is None:
-                reason = "the pad's path misses where the object may be"
+                reason: str | None = "the pad's path misses where the object may be"
             else:
                 target = moved
+                reason = self._near_earlier(target)
             if reason is None:
                 try:
                     self.planner.check_touch(
@@ -399,9 +405,11 @@ class ExplorationSession:
         except SafetyViolation as violation:
             log.warning("target %s refused: %s", np.round(target.target_world, 3), violation)
             self._rejected.append(target.target_world)
+            self._refused_in_a_row += 1
             self._skip(target, str(violation), "approach")
             return State.SELECT
         self._touch, waypoints = touch_plan.touch, touch_plan.transit
+        self._refused_in_a_row = 0
         came_from = [pose_world_tcp]
         for waypoint in waypoints:
             await self.motion.move(waypoint)

@@ -19,7 +19,7 @@ from controller.config import Config
 from controller.perception.protocol import ShapeEstimate, TouchOutcome, TouchTarget
 from controller.request import ExploreRequest
 from controller.service import TouchshapeService
-from controller.session import ExplorationSession
+from controller.session import MAX_REFUSED_IN_A_ROW, ExplorationSession
 from controller.states import STEP_TIMEOUT_S, TRANSITIONS, State
 from drivers.base import GripperState, TactileFrame
 from drivers.factory import Devices, make_devices
@@ -275,3 +275,30 @@ async def test_a_workspace_violation_is_refused_before_anything_moves(
     assert states == ["capture", "reconstruct", "select", "approach", "select", "done", "idle"]
     assert summary["touches"] == 0
     assert moves == []  # nothing moved
+
+
+class AlwaysOutsideTheWorkspace(CylinderPerception):
+    """Proposes the same unreachable target every time, without asking the planner."""
+
+    def select(
+        self,
+        estimate: ShapeEstimate,
+        request: ExploreRequest,
+        outcomes: list[TouchOutcome],
+        allowed: Callable[[TouchTarget], bool],
+        feasible: object = None,
+    ) -> TouchTarget | None:
+        return TouchTarget(np.array([0.37, 0.0, 0.05]), np.array([-1.0, 0.0, 0.0]))
+
+
+async def test_a_policy_that_keeps_proposing_refused_targets_ends_the_session(
+    tmp_path: Path,
+) -> None:
+    """select -> approach -> select ... cannot run forever: after MAX_REFUSED_IN_A_ROW refusals
+    the session stops, says why, and nothing moved."""
+    summary, states, moves, _ = await explore(tmp_path, perception=AlwaysOutsideTheWorkspace)
+    assert summary["state"] == "done"
+    assert summary["stop_reason"].startswith("no safe, reachable target is left")
+    assert states.count("approach") == MAX_REFUSED_IN_A_ROW
+    assert len(summary["skipped_targets"]) == MAX_REFUSED_IN_A_ROW
+    assert moves == []
