@@ -203,7 +203,7 @@ class TouchshapeService:
             summary = await session.run(self._abort)
             self._last_done = summary["state"] == str(State.DONE)
             if session.estimate is not None or session.bound is not None:
-                self._last_obstacles = Obstacles.of_estimate(session.estimate, session.bound)
+                self._last_obstacles = session.obstacles()
             # Compressing the voxels, meshing and writing them, and flushing the recording take
             # tens of milliseconds or more: worker threads' time, not the event loop's.
             summary["artifacts"] = await asyncio.to_thread(self._save_artifacts, session, recorder)

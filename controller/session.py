@@ -271,7 +271,7 @@ class ExplorationSession:
             return self._stop("the touch budget is spent")
         if self._refused_in_a_row >= MAX_REFUSED_IN_A_ROW:
             return self._stop(f"no safe, reachable target is left ({MAX_REFUSED_IN_A_ROW} refused)")
-        obstacles = self._obstacles()
+        obstacles = self.obstacles()
         joints = (await self._device(self.devices.arm.state())).joints_rad
 
         def allowed(target: TouchTarget) -> bool:
@@ -388,7 +388,7 @@ class ExplorationSession:
     async def _approach(self) -> State:
         assert self._target is not None and self.estimate is not None
         target = self._target
-        obstacles = self._obstacles()
+        obstacles = self.obstacles()
         arm = await self._device(self.devices.arm.state())
         pose_world_tcp = self.pose_world_tcp(arm)
         plan = partial(
@@ -508,9 +508,9 @@ class ExplorationSession:
 
     # --- motion ---------------------------------------------------------------------------------
 
-    def _obstacles(self) -> Obstacles:
+    def obstacles(self) -> Obstacles:
         """What motions keep clear of: where the object may be, and the estimate."""
-        return Obstacles.of_estimate(self.estimate, self.bound)
+        return Obstacles.of_estimate(self.estimate, self.bound, self.measured)
 
     async def _add_estimate_to_bound(self) -> None:
         """The estimate adds to where the object may be (and never removes from it)."""
@@ -520,7 +520,7 @@ class ExplorationSession:
 
     async def _make_safe(self, *, report_failure: bool = True) -> None:
         """Stop, retreat the way the interrupted motion came and lift (``MotionExecutor``)."""
-        obstacles = self._obstacles()
+        obstacles = self.obstacles()
         failure = await self.motion.make_safe(obstacles, report_failure=report_failure)
         if failure is not None:
             self.error = (self.error or "") + f" ({failure})"

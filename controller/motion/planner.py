@@ -496,8 +496,9 @@ class MotionPlanner(CheckedMotions):
     ) -> Obstacles:
         """The obstacles for a lift from where the arm is. The arm got here without touching
         anything, but a refined estimate may since have spread where the object may be up to
-        it: a lift from a pose inside that margin keeps the margin from the estimate itself
-        (else the arm could never leave)."""
+        it: a lift from a pose inside that margin keeps the margin from the estimate itself and
+        from the measured bound (which only touches have changed since: the arm was clear of
+        it), else the arm could never leave."""
         try:
             check_pose(
                 pose_world_tcp,
@@ -509,7 +510,7 @@ class MotionPlanner(CheckedMotions):
                 joints_near_rad=joints_rad,
             )
         except SafetyViolation:
-            return Obstacles(obstacles.occupied_points_world)
+            return Obstacles(obstacles.occupied_points_world, bound=obstacles.measured_bound)
         return obstacles
 
     def _estimate_top_m(self, obstacles: Obstacles) -> float:

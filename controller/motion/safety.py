@@ -57,6 +57,9 @@ class Obstacles:
     occupied_points_world: NDArray[np.float64]
     possible_points_world: NDArray[np.float64] | None = None
     bound: ObjectBound | None = None
+    measured_bound: ObjectBound | None = None
+    """The bound from measurements alone (without the estimate's additions): what a lift from
+    a pose the estimate has since spread over still keeps clear of."""
 
     @classmethod
     def none(cls) -> Obstacles:
@@ -64,15 +67,19 @@ class Obstacles:
 
     @classmethod
     def of_estimate(
-        cls, estimate: ShapeEstimate | None, bound: ObjectBound | None = None
+        cls,
+        estimate: ShapeEstimate | None,
+        bound: ObjectBound | None = None,
+        measured_bound: ObjectBound | None = None,
     ) -> Obstacles:
-        """A shape estimate as obstacles (none without an estimate), with the bound given."""
+        """A shape estimate as obstacles (none without an estimate), with the bounds given."""
         if estimate is None:
-            return cls(np.zeros((0, 3)), bound=bound)
+            return cls(np.zeros((0, 3)), bound=bound, measured_bound=measured_bound)
         return cls(
             estimate.occupied_points_world(),
             estimate.occupied_points_world(POSSIBLE_OCCUPANCY),
             bound,
+            measured_bound,
         )
 
     @property

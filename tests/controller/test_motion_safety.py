@@ -14,6 +14,7 @@ from controller.motion.safety import (
     SafetyViolation,
     check_clearance,
     check_force,
+    check_pose,
     check_reachable,
     check_speed,
     check_workspace,
@@ -366,3 +367,39 @@ def test_a_part_deep_inside_where_the_object_may_be_is_refused() -> None:
     with pytest.raises(SafetyViolation, match="inside where the object may be"):
         check_clearance(tool_down_at(0.0, 0.0, 0.3), 0.08, TOOL, obstacles, LimitsConfig())
     check_clearance(tool_down_at(0.0, 0.0, 0.55), 0.08, TOOL, obstacles, LimitsConfig())
+
+
+def block_bound(k_top: int, *, around_xy: int = 8) -> ObjectBound:
+    """A bound that is a block of voxels on the table up to voxel layer ``k_top``, ``around_xy``
+    voxels either side of the cube's centre."""
+    grid = ObjectBound.cube((0.0, 0.0, 0.0))
+    possible = np.zeros((grid.resolution,) * 3, dtype=bool)
+    low, high = 50 - around_xy, 50 + around_xy
+    possible[low:high, low:high, :k_top] = True
+    return ObjectBound(grid, possible, np.zeros_like(possible))
+
+
+def test_a_lift_from_inside_the_estimates_margin_still_keeps_clear_of_the_measured_bound() -> None:
+    """A refined estimate spread over the arm's pose: the lift keeps the margin from the
+    estimate itself and from the measured bound (the arm was clear of it), not from nothing."""
+    plan = planner()
+    pose = tool_down_at(0.1, 0.0, 0.3)
+    joints = check_reachable(pose, POSE_WORLD_BASE, np.array(ArmConfig().home_joints_rad))
+    grown = block_bound(80, around_xy=40)  # the estimate's additions reach around the tool
+    low = block_bound(20)  # measured: an 8 cm block well below the tool
+    obstacles = Obstacles(np.zeros((0, 3)), bound=grown, measured_bound=low)
+    with pytest.raises(SafetyViolation):
+        check_pose(
+            pose,
+            CONFIG.motion.touch_width_m,
+            tool=TOOL,
+            obstacles=obstacles,
+            limits=CONFIG.limits,
+            pose_world_base=POSE_WORLD_BASE,
+            joints_near_rad=joints,
+        )
+    assert plan.plan_lift(pose, joints, obstacles) is not None
+    # Measured to reach around the tool too: no lift there.
+    tall = Obstacles(np.zeros((0, 3)), bound=grown, measured_bound=block_bound(80, around_xy=40))
+    with pytest.raises(SafetyViolation):
+        plan.plan_lift(pose, joints, tall)
