@@ -9,7 +9,6 @@ monitoring) never waits on it. Every transition is published and recorded.
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import logging
 import time
 from collections.abc import Awaitable, Callable
@@ -39,6 +38,7 @@ from controller.request import ExploreRequest
 from controller.scoring import GroundTruthScores
 from controller.session_times import SessionTimes
 from controller.states import STEP_TIMEOUT_S, TRANSITIONS, State
+from controller.targets import onto_measured, pad_paths_meet, repeat_reason
 from drivers.base import DeviceError, TactileFrame
 from drivers.factory import Devices
 from drivers.tool import ToolModel
@@ -49,19 +49,10 @@ from models.touch.constraints import touch_constraints
 log = logging.getLogger(__name__)
 
 
-REJECTED_TARGET_RADIUS_M = 0.01
-"""Targets within this distance of one the planner refused are not proposed again."""
-MISSED_LINE_RADIUS_M = 0.015
-MISSED_LINE_ANGLE_DEG = 30.0
-"""After a touch met nothing, a target within this distance of its line, approached within this
-angle of its direction, would be a near repeat: it is not proposed."""
 MAX_SKIPPED_RECORDS = 200
 MAX_REFUSED_IN_A_ROW = 20
 """Targets the planner refused at the approach one after another before the session stops:
 the checks at select passed them, so the policy could propose such targets without end."""
-PAD_RADIUS_M = 0.007
-"""The measured surface within this distance of a target's approach line is what the gel's
-window (19 x 14 mm) meets first."""
 
 
 class SessionFault(RuntimeError):
@@ -318,60 +309,18 @@ class ExplorationSession:
         return State.DONE
 
     def _onto_measured(self, target: TouchTarget) -> TouchTarget | None:
-        """The target moved along its approach line onto what was measured: back to the
-        measured surface when the estimate put it behind that (the gel meets the surface
-        first), forward to where the measured bound begins when the estimate put it in space
-        seen free (the pad would sweep through nothing); None when the pad's path misses the
-        bound altogether (a sure miss)."""
-        if self.measured is None:
-            return target
-        direction = target.direction_world / np.linalg.norm(target.direction_world)
-        distance = self.config.motion.approach_distance_m
-        reach = (self.config.gripper.stroke_m - self.config.motion.touch_width_m) / 2
-        start = target.target_world - distance * direction
-        first = self.measured.first_along(start, direction, distance + reach)
-        if first is None:
-            return None
-        surface = self.measured.surface_points_world - start
-        along = surface @ direction
-        lateral = np.linalg.norm(surface - along[:, None] * direction, axis=1)
-        ahead = along[(along > 0) & (lateral <= PAD_RADIUS_M)]
-        if len(ahead) and ahead.min() < distance:
-            first = float(ahead.min())
-        elif first <= distance:
-            return target
-        return dataclasses.replace(target, target_world=start + first * direction)
+        return onto_measured(target, self.measured, self._pad_path_m())
 
     def _meets_measured(self, targets_world: np.ndarray, direction: np.ndarray) -> np.ndarray:
-        """Whether each target's pad path (approach start to the fingers' reach) meets the
-        measured bound: a path that does not is a sure miss."""
-        if self.measured is None:
-            return np.ones(len(targets_world), dtype=bool)
-        direction = direction / np.linalg.norm(direction)
-        distance = self.config.motion.approach_distance_m
-        reach = (self.config.gripper.stroke_m - self.config.motion.touch_width_m) / 2
-        starts = targets_world - distance * direction
-        return self.measured.lines_meet(starts, direction, distance + reach)
+        return pad_paths_meet(self.measured, targets_world, direction, self._pad_path_m())
+
+    def _pad_path_m(self) -> tuple[float, float]:
+        """The pad's path before and past a target: the approach distance, the fingers' reach."""
+        motion = self.config.motion
+        return motion.approach_distance_m, (self.config.gripper.stroke_m - motion.touch_width_m) / 2
 
     def _near_earlier(self, target: TouchTarget) -> str | None:
-        """Why a target repeats an earlier one (a refused target, or a touch that met
-        nothing), or None."""
-        point, direction = target.target_world, target.direction_world
-        if any(np.linalg.norm(point - r) < REJECTED_TARGET_RADIUS_M for r in self._rejected):
-            return "near a target whose motions were refused"
-        for outcome in self.outcomes:
-            if outcome.measurement.contact:
-                continue
-            missed = outcome.measurement.target
-            along = missed.direction_world / np.linalg.norm(missed.direction_world)
-            offset = point - missed.target_world
-            lateral = np.linalg.norm(offset - (offset @ along) * along)
-            cosine = direction @ along / np.linalg.norm(direction)
-            if lateral < MISSED_LINE_RADIUS_M and cosine > np.cos(
-                np.radians(MISSED_LINE_ANGLE_DEG)
-            ):
-                return "a near repeat of a touch that met nothing"
-        return None
+        return repeat_reason(target, self._rejected, self.outcomes)
 
     def _skip(self, target: TouchTarget, reason: str, stage: str) -> None:
         if len(self.skipped) < MAX_SKIPPED_RECORDS:

@@ -1,0 +1,68 @@
+"""Targets follow what was measured: onto the measured surface, forward out of space seen free,
+never along a path that cannot meet the object, never a near repeat of a miss."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from controller.perception.protocol import TouchMeasurement, TouchOutcome, TouchTarget
+from controller.targets import onto_measured, pad_paths_meet, repeat_reason
+from drivers.base import TactileFrame
+from models.object_bound import ObjectBound
+
+PAD_PATH_M = (0.06, 0.015)
+FROM_MINUS_X = np.array([1.0, 0.0, 0.0])
+
+
+def block(x_from: float, x_to: float) -> ObjectBound:
+    """A bound that is a block between two x (world), 8 cm wide and tall, with its measured
+    surface on the face at ``x_from``."""
+    grid = ObjectBound.cube((0.0, 0.0, 0.0))
+    centres = grid.voxel_centres_world()
+    inside = (
+        (centres[..., 0] >= x_from)
+        & (centres[..., 0] <= x_to)
+        & (np.abs(centres[..., 1]) <= 0.04)
+        & (centres[..., 2] <= 0.08)
+    )
+    y, z = np.meshgrid(np.arange(-0.04, 0.04, 0.002), np.arange(0.0, 0.08, 0.002))
+    face = np.column_stack([np.full(y.size, x_from), y.ravel(), z.ravel()])
+    return ObjectBound(grid, inside, np.zeros_like(inside), face)
+
+
+def target_at(x: float) -> TouchTarget:
+    return TouchTarget(np.array([x, 0.0, 0.04]), FROM_MINUS_X)
+
+
+def test_a_target_behind_the_measured_surface_moves_back_onto_it() -> None:
+    moved = onto_measured(target_at(0.0), block(-0.03, 0.03), PAD_PATH_M)
+    assert moved is not None
+    np.testing.assert_allclose(moved.target_world, [-0.03, 0.0, 0.04], atol=1e-3)
+
+
+def test_a_target_in_space_seen_free_moves_forward_to_the_bound() -> None:
+    """The estimate put the surface 1 cm in front of where the object may begin (within the
+    fingers' reach: the pad would still get there)."""
+    moved = onto_measured(target_at(-0.04), block(-0.03, 0.03), PAD_PATH_M)
+    assert moved is not None
+    assert -0.035 <= moved.target_world[0] <= -0.03
+
+
+def test_a_target_whose_path_cannot_meet_the_object_is_a_sure_miss() -> None:
+    bound = block(-0.03, 0.03)
+    far = TouchTarget(np.array([-0.12, 0.0, 0.04]), FROM_MINUS_X)
+    assert onto_measured(far, bound, PAD_PATH_M) is None
+    targets = np.array([[-0.12, 0.0, 0.04], [-0.02, 0.0, 0.04]])
+    assert pad_paths_meet(bound, targets, FROM_MINUS_X, PAD_PATH_M).tolist() == [False, True]
+
+
+def test_near_repeats_of_a_miss_and_of_refused_targets_are_named() -> None:
+    frame = TactileFrame(np.zeros((2, 2, 3), np.uint8), 0.0)
+    miss = TouchMeasurement(target_at(-0.03), False, frame, frame, np.eye(4), np.zeros(3), 0.0)
+    outcomes = [TouchOutcome(miss, np.zeros((0, 3)), None, None)]
+    deeper = TouchTarget(np.array([-0.01, 0.005, 0.04]), FROM_MINUS_X)
+    assert repeat_reason(deeper, [], outcomes) == "a near repeat of a touch that met nothing"
+    from_above = TouchTarget(np.array([-0.01, 0.005, 0.04]), np.array([0.0, 0.0, -1.0]))
+    assert repeat_reason(from_above, [], outcomes) is None
+    refused = [np.array([-0.012, 0.0, 0.04])]
+    assert repeat_reason(from_above, refused, []) == "near a target whose motions were refused"
