@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -200,6 +201,15 @@ def _add_safety(commands: argparse._SubParsersAction) -> None:
         "--logs", type=Path, default=None, help="keep the sessions' logs here (default: a temp dir)"
     )
     safety.add_argument("--json", type=Path, required=True, help="write the JSON here")
+    safety.add_argument(
+        "--merge",
+        nargs="+",
+        type=Path,
+        default=None,
+        metavar="JSON",
+        help="run nothing: merge the sessions of earlier runs (e.g. objects split across "
+        "processes, same seed) into one JSON with the totals",
+    )
     safety.set_defaults(handler=bench_safety)
 
 
@@ -372,9 +382,27 @@ def bench_safety(args: argparse.Namespace) -> int:
         format_table,
         run_safety_benchmark,
         safety_objects,
+        summarise_safety,
     )
     from controller.perception.learned import make_perception
     from models.files import write_json_atomically
+
+    if args.merge:
+        runs = [json.loads(path.read_text()) for path in args.merge]
+        merged = runs[0]["config"]
+        settings = SafetySettings(
+            touches=merged["touches"],
+            yaws=merged["yaws"],
+            seed=merged["seed"],
+            input_mode=merged["input"],
+        )
+        rows = [row for run in runs for row in run["sessions_run"]]
+        result = summarise_safety(rows, settings)
+        result["merged_from"] = [str(path) for path in args.merge]
+        write_json_atomically(args.json, result)
+        print(format_table(result))
+        print(f"JSON: {args.json}")
+        return 0
 
     config = load_config(args.config)
     objects = safety_objects(

@@ -372,3 +372,48 @@ def test_a_session_with_the_learned_perception_is_measured(tmp_path: Path) -> No
     assert row["protective_stops"] == 0, row["protective_stop_parts"]
     clearance = row["min_transit_clearance_mm"]
     assert clearance is not None and math.isfinite(clearance) and clearance > 0.0
+
+
+def test_runs_split_across_processes_merge_into_one_json(tmp_path: Path) -> None:
+    """`bench safety --merge A B` sums the sessions of earlier runs and keeps the least
+    clearance over all of them."""
+    from controller.cli.main import main
+
+    def run(name: str, clearance_mm: float, contacts: int) -> Path:
+        row = {
+            "object": name,
+            "yaw_deg": 10.0,
+            "state": "done",
+            "error": None,
+            "touches": 10,
+            "contacts": contacts,
+            "protective_stops": 0,
+            "stop_reason": "the touch budget is spent",
+            "skipped_targets": [{"reason": "gripper_body would come within 10 mm"}],
+            "min_transit_clearance_mm": clearance_mm,
+            "min_transit_clearance_by_part_mm": {"gripper_body": clearance_mm},
+        }
+        path = tmp_path / f"{name}.json"
+        config = {"touches": 10, "yaws": 1, "seed": 0, "input": "rgb"}
+        path.write_text(json.dumps({"config": config, "sessions_run": [row]}))
+        return path
+
+    out = tmp_path / "merged.json"
+    assert (
+        main(
+            [
+                "bench",
+                "safety",
+                "--merge",
+                str(run("a", 30.0, 10)),
+                str(run("b", 12.5, 8)),
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
+    merged = json.loads(out.read_text())
+    assert merged["sessions"] == 2 and merged["touches"] == 20 and merged["contacts"] == 18
+    assert merged["min_transit_clearance_mm"] == 12.5
+    assert merged["skipped_targets"] == 2
