@@ -5,6 +5,7 @@ the way the arm came (sessions on the sim bench complete without protective stop
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
@@ -107,9 +108,13 @@ async def test_a_fault_on_the_approach_retreats_to_its_start_and_up(tmp_path: Pa
     assert summary["state"] == "fault" and "gelsight_housing hit" in summary["error"]
     assert "retreat failed" not in summary["error"]
     assert not arm_state.protective_stopped
-    # Back at the approach start (the pad 60 mm before the estimate, the flange 73 mm behind
-    # the pad), then lifted above the object.
-    assert pose[1, 3] < -radius - 0.06 - 0.07
+    # Back at the approach start (the first approach in motions.jsonl: the pad 60 mm before
+    # the target, the flange 73 mm behind the pad), then lifted above the object.
+    motions = (tmp_path / summary["session"] / "motions.jsonl").read_text().splitlines()
+    approach = next(json.loads(line) for line in motions if '"approach"' in line)
+    start = np.asarray(approach["start_world_tcp"])
+    assert start[1, 3] < -radius - 0.05 - 0.07
+    np.testing.assert_allclose(pose[:2, 3], start[:2, 3], atol=0.001)
     assert pose[2, 3] > mesh.bounds[1, 2] + 0.05
 
 

@@ -8,6 +8,7 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
+import pytest
 import trimesh
 
 from controller.benchmarks.safety import (
@@ -89,6 +90,7 @@ async def test_a_prior_half_the_true_size_cannot_make_a_transit_hit_the_object(
     assert row["min_transit_clearance_mm"] >= MIN_TRANSIT_CLEARANCE_MM, row["worst_transit"]
 
 
+@pytest.mark.timeout(600)  # the learned perception and six touches: a minute on a quiet machine
 async def test_six_touches_on_a_4_cm_object_do_not_fault(tmp_path: Path) -> None:
     """A lemon-sized ellipsoid (4 x 3 x 3 cm), the learned prior and the default settings: the
     session spends its budget without a fault or a protective stop, and the touches meet it."""
