@@ -187,11 +187,8 @@ class ObjectBound:
     ) -> float | None:
         """Distance from ``start_world`` along the (unit) direction to the first possible voxel
         within ``length_m`` (sampled every half voxel), or None when the line misses."""
-        step = 0.5 * self.grid.voxel_size_m
-        distances = np.arange(0.0, length_m + step, step)
-        direction = np.asarray(direction_world, dtype=float)
-        points = np.asarray(start_world, dtype=float) + distances[:, None] * direction
-        hits = np.flatnonzero(self.contains(points))
+        distances, inside = self._along_lines(start_world, direction_world, length_m)
+        hits = np.flatnonzero(inside[0])
         return float(distances[hits[0]]) if len(hits) else None
 
     def lines_meet(
@@ -199,12 +196,19 @@ class ObjectBound:
     ) -> NDArray[np.bool_]:
         """Whether each line from ``starts_world`` (M, 3) along the (unit) direction meets a
         possible voxel within ``length_m`` (sampled every half voxel)."""
+        return self._along_lines(starts_world, direction_world, length_m)[1].any(axis=1)
+
+    def _along_lines(
+        self, starts_world: ArrayLike, direction_world: ArrayLike, length_m: float
+    ) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """The sample distances along the lines (every half voxel) and, per line (M rows),
+        whether each sample lies in a possible voxel."""
         starts = np.asarray(starts_world, dtype=float).reshape(-1, 3)
         step = 0.5 * self.grid.voxel_size_m
         distances = np.arange(0.0, length_m + step, step)
         offsets = distances[:, None] * np.asarray(direction_world, dtype=float)
         points = starts[:, None, :] + offsets[None, :, :]
-        return self.contains(points.reshape(-1, 3)).reshape(len(starts), -1).any(axis=1)
+        return distances, self.contains(points.reshape(-1, 3)).reshape(len(starts), -1)
 
     @property
     def top_m(self) -> float:
