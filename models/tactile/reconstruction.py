@@ -139,6 +139,27 @@ class TactileReconstruction:
         return float(self.height_mm.max())
 
 
+class HeightMapError(ValueError):
+    """A height map that cannot be a measurement: wrong size, NaN or infinite values, or all
+    zero although the gripper reported contact (a real one always holds sensor noise)."""
+
+
+def check_height_map(
+    height_mm: NDArray[np.floating], image_shape: tuple[int, int], *, contact: bool
+) -> None:
+    """Refuse a height map that cannot be a measurement of an ``image_shape`` frame
+    (:class:`HeightMapError`, naming what is wrong)."""
+    height = np.asarray(height_mm)
+    if height.shape != tuple(image_shape):
+        raise HeightMapError(
+            f"height map is {height.shape}, the tactile image {tuple(image_shape)}"
+        )
+    if not np.all(np.isfinite(height)):
+        raise HeightMapError(f"height map holds {int(np.sum(~np.isfinite(height)))} NaN/inf values")
+    if contact and not np.any(height):
+        raise HeightMapError("height map is all zero although the gripper reported contact")
+
+
 class TactileReconstructor:
     """Reconstructs frames of one sensor session: a lookup table plus that session's
     reference.

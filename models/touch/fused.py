@@ -1,0 +1,465 @@
+"""The fused shape: the prior's surface, posed by a similarity fit and bent through every tactile
+measurement by a Gaussian-process correction with the prior as its mean (a Gaussian-process
+implicit surface, as ShapeMap 3-D fuses GelSight and depth: Suresh et al., ICRA 2022).
+
+The field is a signed distance in metres (> 0 outside):
+
+    f(x) = d_prior(x) + c(x)
+
+* ``d_prior`` is the distance to the prior's 0.5 surface (:class:`SignedDistanceGrid`: exact
+  distances to the marching-cubes surface at the voxel centres, trilinear between them), on the
+  prior's grid moved by the pose fit (:func:`fit_pose`: translation on the table, yaw, scale);
+* ``c`` is the posterior mean of a zero-mean Gaussian process fitted to the residuals of the
+  observations (``models.touch.observations``): contact points lie on the surface (f = 0),
+  points ``NORMAL_OFFSET_M`` along their normal outside and inside (f = +-offset, so the
+  normals agree), free points that the field would put inside are held just outside (an
+  active set). Its kernel is Wendland's compactly supported C2 function, so the correction is
+  exactly zero beyond ``support_m`` from every observation: there the field is the prior's.
+
+The posterior standard deviation ``s`` of the correction says how well the surface is known;
+``P(inside) = Phi(-f / s)`` turns the field into the occupancy probabilities the rest of the
+system (policy, safety bound, ``voxels.npz``) reads. See docs/touch.md.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import trimesh
+from numpy.typing import ArrayLike, NDArray
+from scipy.linalg import cho_factor, cho_solve, solve_triangular
+from scipy.ndimage import distance_transform_edt, map_coordinates
+from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
+from scipy.special import ndtr
+from skimage.measure import marching_cubes
+
+from models.geometry import VoxelGrid, rotation_about_axis
+from models.touch.observations import SurfaceObservations, _thin
+
+FloatArray = NDArray[np.float64]
+
+EXTRACTION_SPACING_M = 0.0015
+"""The output mesh's lattice spacing: finer than the sensor's patch detail needs, and it lifts
+the 64^3 grid's 4 mm floor (docs/explore.md)."""
+_BAND_VOXELS = 3.0
+"""Exact distances within this many voxels of the prior surface; a Euclidean distance
+transform beyond (only the sign matters far from it)."""
+_SAMPLES_PER_VOXEL_AREA = 25
+"""Surface samples per voxel face area for the exact distances (0.2 voxel apart)."""
+
+
+# --- the prior's signed distance ------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SignedDistanceGrid:
+    """Signed distance to a probability grid's 0.5 surface, in voxels (> 0 outside), at the
+    voxel centres of ``grid``; :meth:`__call__` interpolates trilinearly, in metres. Moving
+    the grid (:func:`posed_grid`) moves and scales the shape with it."""
+
+    grid: VoxelGrid
+    values_voxels: NDArray[np.float32]
+
+    @classmethod
+    def from_probabilities(cls, probabilities: ArrayLike, grid: VoxelGrid) -> SignedDistanceGrid:
+        volume = np.asarray(probabilities, dtype=np.float32)
+        if volume.shape != (grid.resolution,) * 3:
+            raise ValueError(f"volume {volume.shape} does not match the {grid.resolution}^3 grid")
+        inside = volume >= 0.5
+        if not inside.any() or inside.all():
+            # Nothing (or everything) predicted: a distance that never crosses zero.
+            sign = -1.0 if inside.all() else 1.0
+            return cls(grid, np.full(volume.shape, sign * grid.resolution, np.float32))
+        # Euclidean distance transform: voxel centre to the nearest centre on the other side,
+        # minus half a voxel (the surface lies between them).
+        outside_d = distance_transform_edt(~inside) - 0.5
+        inside_d = distance_transform_edt(inside) - 0.5
+        values = np.where(inside, -inside_d, outside_d)
+        band = np.abs(values) <= _BAND_VOXELS
+        vertices, faces, _, _ = marching_cubes(np.pad(volume, 1), 0.5)
+        mesh = trimesh.Trimesh(vertices - 0.5, faces, process=False)  # voxel coordinates
+        count = int(min(max(mesh.area * _SAMPLES_PER_VOXEL_AREA, 1000), 400_000))
+        samples, _ = trimesh.sample.sample_surface(mesh, count, seed=0)
+        samples = np.concatenate([samples, mesh.vertices])
+        centres = np.argwhere(band) + 0.5
+        distance, _ = cKDTree(samples).query(centres)
+        values[band] = np.where(inside[band], -distance, distance)
+        return cls(grid, values.astype(np.float32))
+
+    def moved_to(self, grid: VoxelGrid) -> SignedDistanceGrid:
+        """The same shape registered by another grid (a pose fit's)."""
+        return replace(self, grid=grid)
+
+    def __call__(self, points_world: ArrayLike) -> FloatArray:
+        """Signed distance (metres) at world points (..., 3); outside the grid's box, plus the
+        distance to the box."""
+        points = np.asarray(points_world, dtype=float)
+        voxel = self.grid.world_to_voxel(points.reshape(-1, 3))
+        index = voxel - 0.5
+        limit = self.grid.resolution - 1
+        clamped = np.clip(index, 0.0, limit)
+        values = map_coordinates(self.values_voxels, clamped.T, order=1, mode="nearest")
+        # Beyond the grid's box nothing was predicted: empty, the distance growing from its faces.
+        outside = np.linalg.norm(index - clamped, axis=1)
+        values = np.where(outside > 0, np.maximum(values, 0.0) + outside, values)
+        return (values * self.grid.voxel_size_m).reshape(points.shape[:-1])
+
+
+# --- pose fit -------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PoseFitSettings:
+    """The similarity fit's priors (standard deviations) and robust scale."""
+
+    translation_std_m: float = 0.015
+    yaw_std_deg: float = 15.0
+    log_scale_std: float = 0.1
+    residual_scale_m: float = 0.001
+    """Soft-L1 scale: residuals beyond it count linearly (a wrong contact does not dominate)."""
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Translation on the table (x, y, metres), yaw about the vertical through the grid's
+    object point (radians) and log scale about it: how the prior's shape is moved."""
+
+    x_m: float = 0.0
+    y_m: float = 0.0
+    yaw_rad: float = 0.0
+    log_scale: float = 0.0
+
+    def as_array(self) -> FloatArray:
+        return np.array([self.x_m, self.y_m, self.yaw_rad, self.log_scale])
+
+
+def posed_grid(grid: VoxelGrid, pose: Pose) -> VoxelGrid:
+    """``grid`` moved by ``pose``: scaled about and yawed around its object point (the bottom
+    centre, on the table), then shifted on the table. The object stays on the table."""
+    rotation = rotation_about_axis((0, 0, 1), pose.yaw_rad)
+    axes = rotation @ np.asarray(grid.axes_world, dtype=float).T
+    origin = np.asarray(grid.origin_world, dtype=float) + np.array([pose.x_m, pose.y_m, 0.0])
+    return VoxelGrid(
+        resolution=grid.resolution,
+        extent_m=grid.extent_m * math.exp(pose.log_scale),
+        origin_world=tuple(float(v) for v in origin),
+        axes_world=tuple(tuple(float(v) for v in column) for column in axes.T),
+    )
+
+
+def _per_touch_weights(source: NDArray[np.int64]) -> FloatArray:
+    """1 / sqrt(points of the same touch): every touch weighs the same, however large its patch."""
+    _, inverse, counts = np.unique(source, return_inverse=True, return_counts=True)
+    return 1.0 / np.sqrt(counts[inverse])
+
+
+def fit_pose(
+    prior: SignedDistanceGrid,
+    base_grid: VoxelGrid,
+    observations: SurfaceObservations,
+    start: Pose = Pose(),
+    settings: PoseFitSettings = PoseFitSettings(),
+) -> Pose:
+    """The pose of the prior's shape (``prior`` values on ``base_grid`` moved by it) that puts
+    the measured surface on its surface and the free points outside, with Gaussian priors on
+    the pose (robust least squares, scipy's trust region). No surface points: ``start``."""
+    surface = observations.surface_points_world
+    if len(surface) == 0:
+        return start
+    weights = _per_touch_weights(observations.surface_source)
+    free = observations.free_points_world
+    if len(free):
+        free = free[_thin(free, 0.004)]
+    free_weight = 1.0 / math.sqrt(
+        max(len(free) / max(len(np.unique(observations.surface_source)), 1), 1.0)
+    )
+    scale = settings.residual_scale_m
+    priors = np.array(
+        [
+            settings.translation_std_m,
+            settings.translation_std_m,
+            math.radians(settings.yaw_std_deg),
+            settings.log_scale_std,
+        ]
+    )
+
+    def residuals(q: FloatArray) -> FloatArray:
+        field = prior.moved_to(posed_grid(base_grid, Pose(*q)))
+        on_surface = weights * field(surface) / scale
+        outside = free_weight * np.minimum(field(free), 0.0) / scale if len(free) else []
+        return np.concatenate([on_surface, outside, q / priors])
+
+    result = least_squares(
+        residuals, start.as_array(), loss="soft_l1", f_scale=1.0, x_scale=priors, max_nfev=60
+    )
+    return Pose(*(float(v) for v in result.x))
+
+
+# --- the correction -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FusionSettings:
+    """The Gaussian process's kernel and noise (metres)."""
+
+    support_m: float = 0.05
+    """Wendland kernel radius: the correction is zero beyond it from every observation."""
+    prior_std_m: float = 0.004
+    """Standard deviation of the correction before any touch: how far the prior's surface may be
+    off, and the field's uncertainty far from touches."""
+    surface_noise_m: float = 0.0002
+    normal_offset_m: float = 0.001
+    normal_noise_m: float = 0.0005
+    free_target_m: float = 0.0005
+    free_noise_m: float = 0.0005
+    surface_spacing_m: float = 0.002
+    """Surface points are thinned to this lattice for the process (the cost is cubic in them)."""
+    variance_spacing_m: float = 0.004
+    """The standard deviation conditions on surface points thinned to this lattice (cheaper, a
+    slight over-estimate)."""
+    free_rounds: int = 3
+    pose_fit: bool = True
+
+
+def wendland(distance_m: ArrayLike, support_m: float) -> FloatArray:
+    """Wendland's C2 function (positive definite in 3-D): (1 - r)^4 (4 r + 1) for r < 1."""
+    r = np.minimum(np.asarray(distance_m, dtype=float) / support_m, 1.0)
+    return (1.0 - r) ** 4 * (4.0 * r + 1.0)
+
+
+def _cross_kernel(a: FloatArray, b: FloatArray, support_m: float, chunk: int = 20000) -> FloatArray:
+    """k(a_i, b_j) without the variance factor, (len(a), len(b))."""
+    out = np.empty((len(a), len(b)))
+    for lo in range(0, len(a), chunk):
+        d = np.linalg.norm(a[lo : lo + chunk, None, :] - b[None, :, :], axis=-1)
+        out[lo : lo + chunk] = wendland(d, support_m)
+    return out
+
+
+@dataclass
+class Correction:
+    """A fitted Gaussian-process correction: ``mean(x) = k(x, X) alpha``."""
+
+    points_world: FloatArray
+    alpha: FloatArray
+    variance_points_world: FloatArray
+    variance_cholesky: FloatArray
+    settings: FusionSettings
+    _tree: cKDTree | None = field(default=None, repr=False)
+
+    @property
+    def is_empty(self) -> bool:
+        return len(self.points_world) == 0
+
+    def near(self, points_world: FloatArray) -> NDArray[np.bool_]:
+        """Points within the kernel's support of some observation (elsewhere c = 0, s = prior)."""
+        if self.is_empty:
+            return np.zeros(len(points_world), bool)
+        if self._tree is None:
+            self._tree = cKDTree(self.points_world)
+        distance, _ = self._tree.query(points_world, distance_upper_bound=self.settings.support_m)
+        return np.isfinite(distance)
+
+    def mean(self, points_world: ArrayLike) -> FloatArray:
+        points = np.asarray(points_world, dtype=float).reshape(-1, 3)
+        out = np.zeros(len(points))
+        near = self.near(points)
+        if near.any():
+            variance = self.settings.prior_std_m**2
+            out[near] = (
+                variance
+                * _cross_kernel(points[near], self.points_world, self.settings.support_m)
+                @ self.alpha
+            )
+        return out
+
+    def std(self, points_world: ArrayLike) -> FloatArray:
+        points = np.asarray(points_world, dtype=float).reshape(-1, 3)
+        prior_std = self.settings.prior_std_m
+        out = np.full(len(points), prior_std)
+        if len(self.variance_points_world) == 0:
+            return out
+        near = self.near(points)
+        if near.any():
+            k = _cross_kernel(self.variance_points_world, points[near], self.settings.support_m)
+            v = solve_triangular(self.variance_cholesky, k * prior_std**2, lower=True)
+            variance = prior_std**2 - (v * v).sum(axis=0)
+            out[near] = np.sqrt(np.maximum(variance, 0.0))
+        return out
+
+
+def _solve(
+    points: FloatArray, residuals: FloatArray, noise_m: FloatArray, settings: FusionSettings
+) -> FloatArray:
+    variance = settings.prior_std_m**2
+    gram = variance * _cross_kernel(points, points, settings.support_m)
+    gram[np.diag_indices_from(gram)] += noise_m**2
+    return cho_solve(cho_factor(gram, lower=True), residuals)
+
+
+def fit_correction(
+    prior: SignedDistanceGrid, observations: SurfaceObservations, settings: FusionSettings
+) -> Correction:
+    """The process's posterior given the observations, around the prior's signed distance."""
+    surface = observations.surface_points_world
+    keep = _thin(surface, settings.surface_spacing_m)
+    surface, normals = surface[keep], observations.surface_normals_world[keep]
+    offset = settings.normal_offset_m
+    points = np.concatenate([surface, surface + offset * normals, surface - offset * normals])
+    targets = np.concatenate(
+        [np.zeros(len(surface)), np.full(len(surface), offset), np.full(len(surface), -offset)]
+    )
+    noise = np.concatenate(
+        [
+            np.full(len(surface), settings.surface_noise_m),
+            np.full(2 * len(surface), settings.normal_noise_m),
+        ]
+    )
+    free = observations.free_points_world
+    prior_free = prior(free) if len(free) else np.zeros(0)
+    held = np.zeros(len(free), bool)
+    correction = _correction(
+        points, targets - prior(points) if len(points) else targets, noise, surface, settings
+    )
+    for _ in range(settings.free_rounds if len(free) else 0):
+        # Free points the field puts inside (or on) the surface: hold them just outside.
+        inside = (prior_free + correction.mean(free) < settings.free_target_m * 0.5) & ~held
+        if not inside.any():
+            break
+        added = np.flatnonzero(inside)
+        added = added[_thin(free[added], settings.surface_spacing_m)]
+        held[added] = True
+        points = np.concatenate([points, free[added]])
+        targets = np.concatenate([targets, np.full(len(added), settings.free_target_m)])
+        noise = np.concatenate([noise, np.full(len(added), settings.free_noise_m)])
+        correction = _correction(points, targets - prior(points), noise, surface, settings)
+    return correction
+
+
+def _correction(
+    points: FloatArray,
+    residuals: FloatArray,
+    noise: FloatArray,
+    surface: FloatArray,
+    settings: FusionSettings,
+) -> Correction:
+    if len(points) == 0:
+        return Correction(
+            np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 0)), settings
+        )
+    alpha = _solve(points, residuals, noise, settings)
+    anchors = surface[_thin(surface, settings.variance_spacing_m)] if len(surface) else points[:0]
+    variance = settings.prior_std_m**2
+    gram = variance * _cross_kernel(anchors, anchors, settings.support_m)
+    gram[np.diag_indices_from(gram)] += settings.surface_noise_m**2
+    cholesky = np.linalg.cholesky(gram) if len(anchors) else np.zeros((0, 0))
+    return Correction(points, alpha, anchors, cholesky, settings)
+
+
+# --- the fused shape ------------------------------------------------------------------------------
+
+
+@dataclass
+class FusedShape:
+    """The prior's signed distance (posed) plus the touches' correction; world metres."""
+
+    prior: SignedDistanceGrid
+    correction: Correction
+    pose: Pose = Pose()
+
+    @classmethod
+    def from_prior(
+        cls,
+        probabilities: ArrayLike,
+        prior_grid: VoxelGrid,
+        observations: SurfaceObservations | None = None,
+        settings: FusionSettings = FusionSettings(),
+        start_pose: Pose = Pose(),
+    ) -> FusedShape:
+        """Fuse ``observations`` into the prior's estimate (``probabilities`` on ``prior_grid``):
+        pose fit first (when enabled), then the correction around the posed prior."""
+        observations = observations or SurfaceObservations.none()
+        prior = SignedDistanceGrid.from_probabilities(probabilities, prior_grid)
+        pose = start_pose
+        if settings.pose_fit and len(observations.surface_points_world):
+            pose = fit_pose(prior, prior_grid, observations, start_pose)
+        posed = prior.moved_to(posed_grid(prior_grid, pose))
+        return cls(posed, fit_correction(posed, observations, settings), pose)
+
+    def sdf(self, points_world: ArrayLike) -> FloatArray:
+        """The field (metres, > 0 outside), cut by the table: nothing lies below z = 0."""
+        points = np.asarray(points_world, dtype=float)
+        flat = points.reshape(-1, 3)
+        field = self.prior(flat) + self.correction.mean(flat)
+        return np.maximum(field, -flat[:, 2]).reshape(points.shape[:-1])
+
+    def std(self, points_world: ArrayLike) -> FloatArray:
+        points = np.asarray(points_world, dtype=float)
+        return self.correction.std(points.reshape(-1, 3)).reshape(points.shape[:-1])
+
+    def probabilities(self, grid: VoxelGrid, std_floor_m: float = 0.0003) -> NDArray[np.float32]:
+        """P(inside) = Phi(-f / s) at ``grid``'s voxel centres, (N, N, N)."""
+        centres = grid.voxel_centres_world().reshape(-1, 3)
+        std = np.hypot(self.std(centres), std_floor_m)
+        inside = ndtr(-self.sdf(centres) / std)
+        return inside.reshape((grid.resolution,) * 3).astype(np.float32)
+
+    def mesh(self, spacing_m: float = EXTRACTION_SPACING_M) -> trimesh.Trimesh:
+        """The zero surface, marching cubes on a ``spacing_m`` lattice around the object."""
+        return extract_surface(self, spacing_m)
+
+
+def _object_box(shape: FusedShape, margin_m: float) -> tuple[FloatArray, FloatArray] | None:
+    """World box around the prior's inside voxels and the observations, plus a margin."""
+    prior = shape.prior
+    inside = np.argwhere(prior.values_voxels < 0.5)
+    if len(inside) == 0 and shape.correction.is_empty:
+        return None
+    corners = [prior.grid.voxel_to_world(inside), prior.grid.voxel_to_world(inside + 1.0)]
+    corners.append(shape.correction.points_world)
+    points = np.concatenate([c for c in corners if len(c)])
+    return points.min(axis=0) - margin_m, points.max(axis=0) + margin_m
+
+
+def extract_surface(shape: FusedShape, spacing_m: float = EXTRACTION_SPACING_M) -> trimesh.Trimesh:
+    """Marching cubes of the field at 0 on a world-axis lattice of ``spacing_m`` around the
+    object. The correction is evaluated on a lattice 3x coarser and interpolated (it varies over
+    the kernel's support, centimetres); the prior's distance on the fine one. Outward normals."""
+    box = _object_box(shape, 3 * spacing_m + 3 * shape.correction.settings.prior_std_m)
+    if box is None:
+        return trimesh.Trimesh()
+    low, high = box
+    counts = np.ceil((high - low) / spacing_m).astype(int) + 1
+    axes = [low[a] + spacing_m * np.arange(counts[a]) for a in range(3)]
+    lattice = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+    values = shape.prior(lattice)
+    if not shape.correction.is_empty:
+        coarse_axes = [
+            np.linspace(ax[0], ax[-1], max(2, math.ceil(len(ax) / 3) + 1)) for ax in axes
+        ]
+        coarse = np.stack(np.meshgrid(*coarse_axes, indexing="ij"), axis=-1)
+        correction = shape.correction.mean(coarse.reshape(-1, 3)).reshape(coarse.shape[:-1])
+        index = [
+            np.interp(ax, cax, np.arange(len(cax)))
+            for ax, cax in zip(axes, coarse_axes, strict=True)
+        ]
+        fine_index = np.stack(np.meshgrid(*index, indexing="ij"), axis=0)
+        values = values + map_coordinates(correction, fine_index, order=1, mode="nearest")
+    values = np.maximum(values, -lattice[..., 2])  # the table: nothing below z = 0
+    values = np.pad(values, 1, constant_values=spacing_m)  # closed surface
+    if values.min() >= 0 or values.max() <= 0:
+        return trimesh.Trimesh()
+    vertices, faces, _, _ = marching_cubes(values.astype(np.float32), 0.0, spacing=(spacing_m,) * 3)
+    # A distance (low inside) on a right-handed lattice: skimage's winding is outward (tested).
+    return trimesh.Trimesh(vertices - spacing_m + low, faces, process=False)
+
+
+def prior_surface(
+    probabilities: ArrayLike, grid: VoxelGrid, spacing_m: float = EXTRACTION_SPACING_M
+) -> trimesh.Trimesh:
+    """A voxel estimate's surface through the same extraction as a fused shape (no touches):
+    what the vision estimate, the latent update and Direct Edit are measured on."""
+    return FusedShape.from_prior(probabilities, grid).mesh(spacing_m)
