@@ -193,6 +193,25 @@ class ModelsConfig:
     weights_dir: str = ""
     """Empty = the weights shipped with the package."""
     device: str = "cpu"
+    update: Literal["fused", "prior", "direct"] = "fused"
+    """How touches change the shape (a request may choose another): "fused" fits the prior's
+    latent and pose and bends its surface through every measurement (models.touch.fused);
+    "prior" the paper's latent-only update; "direct" the paper's Direct Edit baseline."""
+    fusion_support_m: float = 0.035
+    """The fused correction's reach from a touch (models.touch.fused.FusionSettings)."""
+    fusion_prior_std_m: float = 0.004
+    """How far the prior's surface may be off before any touch (the fused field's
+    uncertainty far from touches)."""
+    fusion_refine_latent: bool = False
+    """Refine the prior's latent by the touch loss before fusing (as the "prior" update does).
+    Off: on the bench it helped some objects and broke others (docs/touch.md)."""
+    fusion_pose_fit: bool = False
+    """Fit the prior's translation, yaw and scale to the touches (fused update). Off: on the
+    bench it moved shapes by their local errors (docs/touch.md)."""
+    fusion_policy: Literal["variance", "window"] = "variance"
+    """What the active policy reads with the fused update: the fused field's P(inside) with its
+    uncertainty ("variance": touched regions are known), or with the prior's uncertainty
+    everywhere ("window": the paper's |v - 0.5| policy on the fused shape)."""
     refine_learning_rate: float = 3e-3
     """Adam's step size on the latent (the paper: 1e-3; docs/explore.md has the measured
     reason for 3e-3 together with the anchor)."""
@@ -217,6 +236,8 @@ class ModelsConfig:
         if not NAME_PATTERN.fullmatch(self.prior):
             raise FieldError("prior", "must be 1..64 letters, digits, '_' or '-'")
         require_positive(self, "refine_learning_rate")
+        require_positive(self, "fusion_support_m")
+        require_positive(self, "fusion_prior_std_m")
         if self.refine_iterations_per_touch < 0:
             raise FieldError("refine_iterations_per_touch", "must be >= 0")
         if not (math.isfinite(self.refine_anchor_weight) and self.refine_anchor_weight >= 0):

@@ -33,13 +33,14 @@ import rerun as rr
 import rerun.blueprint as rrb
 import rerun_bindings
 import rerun_cli
+import trimesh
 from numpy.typing import NDArray
 from rerun.chunk import RrdReader
 
 from drivers.base import RGBDFrame
 from models.files import write_json_atomically
 from models.geometry import VoxelGrid
-from models.metrics import voxel_surface_mesh
+from models.touch.observations import SurfaceObservations
 
 log = logging.getLogger(__name__)
 
@@ -270,11 +271,15 @@ class SessionRecorder:
         )
         return path
 
-    def save_mesh(self, probabilities: NDArray[np.floating], grid: VoxelGrid) -> Path:
-        """The shape's marching-cubes surface (world frame, metres) as PLY."""
+    def save_mesh(self, mesh: trimesh.Trimesh) -> Path:
+        """The shape's surface (world frame, metres; ``ShapeEstimate.surface_mesh``) as PLY."""
         path = self.artifacts_dir / "shape.ply"
-        voxel_surface_mesh(probabilities, grid).export(path)
+        mesh.export(path)
         return path
+
+    def save_observations(self, observations: SurfaceObservations) -> Path:
+        """What the touches measured (``models.touch.observations``) as observations.npz."""
+        return observations.save(self.artifacts_dir / "observations.npz")
 
     def save_summary(self, summary: dict[str, Any]) -> Path:
         return write_json_atomically(self.artifacts_dir / "summary.json", summary)

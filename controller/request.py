@@ -27,7 +27,7 @@ class ExploreRequest:
 
     max_touches: Annotated[int, MAX_TOUCHES] = 10
     policy: Literal["active", "random"] = "active"
-    update: Literal["prior", "direct"] = "prior"
+    update: Literal["fused", "prior", "direct"] = "fused"
     input: Literal["rgb", "rgbd"] = "rgb"
     prior: str = "general"
 

@@ -12,7 +12,7 @@ import trimesh
 
 from controller.perception.protocol import ShapeEstimate
 from controller.recording import SessionRecorder
-from models.metrics import mesh_metrics
+from models.metrics import SurfaceMetrics, surfaces_metrics
 
 if TYPE_CHECKING:
     from drivers.sim.world import SimWorld
@@ -39,7 +39,7 @@ class GroundTruthScores:
     async def _score(
         self, estimate: ShapeEstimate, mesh: trimesh.Trimesh, touch: int
     ) -> dict[str, float]:
-        scores = await asyncio.to_thread(mesh_metrics, estimate.probabilities, estimate.grid, mesh)
+        scores = await asyncio.to_thread(_scores, estimate, mesh)
         values = {name: float(getattr(scores, name)) for name in SCORES}
         for name, value in values.items():
             self.recorder.log_metric(name, value, touch=touch)
@@ -57,3 +57,9 @@ class GroundTruthScores:
             for name, value in result.items():
                 metrics.setdefault(name, []).append(round(value, 3))
         return metrics
+
+
+def _scores(estimate: ShapeEstimate, true_mesh_world: trimesh.Trimesh) -> SurfaceMetrics:
+    """The estimate's surface (``ShapeEstimate.surface_mesh``: every update through the same
+    extraction) against the truth."""
+    return surfaces_metrics(estimate.surface_mesh(), true_mesh_world)

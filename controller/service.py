@@ -30,6 +30,7 @@ from controller.request import ExploreRequest, RequestError, parse_explore_reque
 from controller.session import ExplorationSession
 from controller.states import State
 from drivers.factory import Devices, make_devices
+from models.touch.observations import SurfaceObservations, observations_of
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +88,7 @@ class TouchshapeService:
         self._last_obstacles = Obstacles.none()
         """Where the last session found the object may be: the next way home keeps clear of it
         (the object is assumed to stay between sessions)."""
-        self.defaults = ExploreRequest(prior=config.models.prior)
+        self.defaults = ExploreRequest(prior=config.models.prior, update=config.models.update)
         self.prior_names: frozenset[str] = frozenset()
         """What requests may name as ``prior`` (the perception's, read at start)."""
 
@@ -224,10 +225,18 @@ class TouchshapeService:
             "blueprint": str(recorder.blueprint_path),
             "touches": str(recorder.touches_path),
         }
+        touches = observations_of([o.touch for o in session.outcomes if o.touch is not None])
+        camera = (
+            session.estimate.camera_observations
+            if session.estimate is not None
+            else SurfaceObservations.none()
+        )
+        observations = SurfaceObservations.merged([camera, touches])
+        artifacts["observations"] = str(recorder.save_observations(observations))
         if session.estimate is not None:
             estimate = session.estimate
             artifacts["voxels"] = str(recorder.save_voxels(estimate.probabilities, estimate.grid))
-            artifacts["mesh"] = str(recorder.save_mesh(estimate.probabilities, estimate.grid))
+            artifacts["mesh"] = str(recorder.save_mesh(estimate.surface_mesh()))
         return artifacts
 
     async def wait_session(self) -> dict[str, Any] | None:

@@ -44,6 +44,7 @@ from drivers.factory import Devices
 from drivers.tool import ToolModel
 from models.geometry import ur_pose_to_matrix
 from models.object_bound import ObjectBound
+from models.tactile.reconstruction import HeightMapError
 from models.touch.constraints import touch_constraints
 
 log = logging.getLogger(__name__)
@@ -408,7 +409,25 @@ class ExplorationSession:
             pad_start_world=self._touch.pad_start_world,
             force_n=gripper.force_n,
         )
-        outcome = await self._compute(self.perception.interpret, measurement)
+        try:
+            outcome = await self._compute(self.perception.interpret, measurement)
+        except HeightMapError as error:
+            # A bad measurement: this touch tells nothing; the shape stays as it is.
+            self.touch_count += 1
+            self.recorder.set_touch(self.touch_count)
+            log.error("touch %d refused: %s; going on without it", self.touch_count, error)
+            self.publish(
+                "touch",
+                {
+                    "session": self.session_id,
+                    "touch": self.touch_count,
+                    "contact": contact,
+                    "error": f"refused: {error}",
+                },
+            )
+            if self.touch_count >= self.request.max_touches:
+                return self._stop("the touch budget is spent")
+            return State.SELECT
         self.outcomes.append(outcome)
         if outcome.touch is not None and self.measured is not None:
             # What the gel swept through without meeting anything is free.

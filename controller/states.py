@@ -34,7 +34,8 @@ TRANSITIONS: dict[State, frozenset[State]] = {
     State.SELECT: frozenset({State.APPROACH, State.DONE}),
     # Back to select when the planner refuses the motion to a target (it is then excluded).
     State.APPROACH: frozenset({State.TOUCH, State.SELECT}),
-    State.TOUCH: frozenset({State.REFINE}),
+    # A refused measurement (a bad height map) skips the refinement.
+    State.TOUCH: frozenset({State.REFINE, State.SELECT, State.DONE}),
     State.REFINE: frozenset({State.SELECT, State.DONE}),
     State.DONE: frozenset({State.IDLE}),
     State.FAULT: frozenset({State.IDLE}),

@@ -116,7 +116,17 @@ def mesh_metrics(
     seed: int = 0,
 ) -> SurfaceMetrics:
     """Chamfer / F-score of a predicted voxel grid's surface against the true mesh (world)."""
-    predicted = sample_surface(voxel_surface_mesh(probabilities, grid), count, seed)
+    return surfaces_metrics(voxel_surface_mesh(probabilities, grid), true_mesh_world, count, seed)
+
+
+def surfaces_metrics(
+    predicted_mesh_world: trimesh.Trimesh,
+    true_mesh_world: trimesh.Trimesh,
+    count: int = SURFACE_SAMPLES,
+    seed: int = 0,
+) -> SurfaceMetrics:
+    """Chamfer / F-score of a predicted surface against the true one (world meshes)."""
+    predicted = sample_surface(predicted_mesh_world, count, seed)
     return surface_metrics(predicted, sample_surface(true_mesh_world, count, seed + 1))
 
 

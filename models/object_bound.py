@@ -126,7 +126,7 @@ class ObjectBound:
         )
         occluder_z = np.full(len(z), -np.inf)
         occluder_z[seen] = heights[v[seen], u[seen]]
-        surface = _object_points(depth, intrinsics, pose, grid)
+        surface = object_depth_points(depth, intrinsics, pose, grid)
         hidden = _hidden_depth_m(surface)
         shadow = (occluder_z > OCCLUDER_MIN_HEIGHT_M) & (z <= far + hidden + half_diagonal)
         possible = ~seen | (~seen_free & shadow)
@@ -246,7 +246,7 @@ def _height_image(
     return np.where(depth_m > 0, heights, -np.inf)
 
 
-def _object_points(
+def object_depth_points(
     depth_m: FloatArray,
     intrinsics: CameraIntrinsics,
     pose_world_camera: FloatArray,

@@ -27,7 +27,13 @@ from controller.perception.learned import LearnedPerception
 from controller.perception.protocol import ShapeEstimate, TouchOutcome, TouchTarget
 from controller.request import ExploreRequest
 from models.geometry import make_transform, rotation_about_axis
-from models.metrics import mesh_metrics, voxel_iou
+from models.metrics import (
+    SURFACE_SAMPLES,
+    distance_to_mesh,
+    sample_surface,
+    surface_metrics,
+    voxel_iou,
+)
 from models.prior.evaluation import EvalObject
 from models.prior.shape_prior import ShapePrior
 from models.shapes import fits_extent, load_mesh_file, voxelize
@@ -39,12 +45,18 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-METHODS: dict[str, tuple[Literal["active", "random", "oracle"], Literal["prior", "direct"]]] = {
+Policy = Literal["active", "random", "oracle"]
+Update = Literal["fused", "prior", "direct"]
+METHODS: dict[str, tuple[Policy, Update]] = {
+    "active-fused": ("active", "fused"),
+    "random-fused": ("random", "fused"),
+    "oracle-fused": ("oracle", "fused"),
     "active-prior": ("active", "prior"),
     "random-prior": ("random", "prior"),
     "active-direct": ("active", "direct"),
     "oracle-prior": ("oracle", "prior"),
 }
+"""Method name -> (touch policy, shape update). A method's seeds depend on its position here."""
 MAX_OBJECT_HEIGHT_M, MAX_OBJECT_WIDTH_M = 0.25, 0.20
 """Mesh files larger than this are scaled down to fit the voxel grid."""
 
@@ -149,6 +161,7 @@ class ObjectRun:
         # The estimate's grid: registered, or fitted to the object by an object-frame prior.
         self.grid = self.vision.grid
         self.truth = voxelize(self.mesh_world, self.grid).astype(np.float32)
+        self.true_points = sample_surface(self.mesh_world, SURFACE_SAMPLES, self.metric_seed + 1)
         self.vision_metrics = self.metrics(self.vision)
 
     def perception(self, seed: int) -> LearnedPerception:
@@ -160,24 +173,36 @@ class ObjectRun:
             seed=seed,
         )
 
-    def request(self, policy: str, update: str) -> ExploreRequest:
+    def request(self, policy: Policy, update: Update) -> ExploreRequest:
         return ExploreRequest(
             max_touches=self.settings.touches,
             policy="random" if policy == "random" else "active",
-            update="direct" if update == "direct" else "prior",
+            update=update,
             input=self.settings.input_mode,
             prior=self.settings.prior,
         )
 
-    def metrics(self, estimate: ShapeEstimate) -> dict[str, float | None]:
-        surface = mesh_metrics(
-            estimate.probabilities, self.grid, self.mesh_world, seed=self.metric_seed
-        )
+    def metrics(
+        self, estimate: ShapeEstimate, outcomes: Sequence[TouchOutcome] = ()
+    ) -> dict[str, float | None]:
+        """The estimate's surface (:meth:`ShapeEstimate.surface_mesh`, every update through the
+        same extraction) against the truth, and the touch fidelity: the median distance (mm)
+        from every contact point so far to that surface (None before a contact)."""
+        mesh = estimate.surface_mesh()
+        predicted = sample_surface(mesh, SURFACE_SAMPLES, self.metric_seed)
+        surface = surface_metrics(predicted, self.true_points)
+        contacts = [o.contact_points_world for o in outcomes if len(o.contact_points_world)]
+        fidelity = None
+        if contacts:
+            fidelity = _finite(
+                1e3 * float(np.median(distance_to_mesh(np.concatenate(contacts), mesh)))
+            )
         return {
             "chamfer_mm": _finite(surface.chamfer_mm),
             "fscore_5mm": surface.fscore_5mm,
             "fscore_2mm": surface.fscore_2mm,
             "iou": voxel_iou(estimate.probabilities[None], self.truth[None]),
+            "touch_fidelity_mm": fidelity,
         }
 
     def trial(
@@ -207,7 +232,8 @@ class ObjectRun:
         )
         before, after = estimate.probabilities > 0.5, refined.probabilities > 0.5
         flipped = int(np.count_nonzero(before != after))
-        return TouchTrial(outcome, refined, self.metrics(refined), refine.wall_s[0], loss, flipped)
+        metrics = self.metrics(refined, [*outcomes, outcome])
+        return TouchTrial(outcome, refined, metrics, refine.wall_s[0], loss, flipped)
 
     def oracle_candidates(
         self, perception: LearnedPerception, estimate: ShapeEstimate, outcomes: list[TouchOutcome]
@@ -316,9 +342,9 @@ def _object_row(
     try:
         methods = {}
         for method in settings.methods:
-            runs = settings.random_runs if method == "random-prior" else 1
+            runs = settings.random_runs if METHODS[method][0] == "random" else 1
             results = [_explore(run, method, r, tick) for r in range(runs)]
-            methods[method] = mean_runs(results) if method == "random-prior" else results[0]
+            methods[method] = mean_runs(results) if METHODS[method][0] == "random" else results[0]
     finally:
         run.close()
     row = {"name": obj.name, "category": obj.category, "yaw_deg": run.yaw_deg, "methods": methods}
@@ -351,7 +377,7 @@ def run_explore_benchmark(
 
     prior.check_grid(config.voxel_grid.grid(config.cameras.rgbd.pose_world_camera()[:3, 3]))
     touches_per_object = settings.touches * sum(
-        settings.random_runs if m == "random-prior" else 1 for m in settings.methods
+        settings.random_runs if METHODS[m][0] == "random" else 1 for m in settings.methods
     )
     bar = tqdm(
         total=len(objects) * touches_per_object,

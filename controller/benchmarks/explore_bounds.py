@@ -1,20 +1,30 @@
 """How far can touches lower the Chamfer distance at all? Bounds for the exploration benchmark.
 
 Per object, with the exploration benchmark's set-up (:class:`ObjectRun`: the bench camera's
-frame, the prior's vision estimate, the voxelised truth):
+frame, the prior's vision estimate, the voxelised truth; every estimate measured through
+``ShapeEstimate.surface_mesh``, the same 1.5 mm extraction for every update):
 
-* ``floor_mm``: the Chamfer distance of the true voxels themselves (marching cubes of the
-  voxelised mesh): what a perfect voxel estimate at this resolution scores.
+* ``floor_mm``: the Chamfer distance of the true voxels themselves (the voxelised mesh through
+  that extraction): what a perfect voxel estimate at this resolution scores. The fused update
+  is not bound by it: its surface passes through the measured points, between voxel centres.
 * ``latent_fit_mm``: the prior's latent fitted to the whole true volume (Adam on the binary
   cross-entropy, from the vision latent). Latent refinement cannot beat the best shape the
   latent can express, and this is close to it: complete knowledge of the shape, not 10 touches.
-* ``ideal_touches_mm``: the curve after 0..K touches of an idealised sensor, refined exactly as
-  the pipeline refines (``LearnedPerception.refine_with``, the config's ``[models]``). Each
-  touch is a pad-sized range image: every ray of the pad, 1 mm apart, measures its first hit
-  on the true mesh within ``IDEAL_DEPTH_M`` of the target, at a random surface point approached
-  along the true normal. That is far more than a GelSight touch gives: the gel images only
-  where it is pressed, a few square millimetres at the contact force, and the target is not
-  known to lie on the surface.
+* ``ideal_touches_fused_mm``: the curve after 0..K touches of an idealised sensor, with the
+  fused update exactly as the pipeline makes it (``LearnedPerception.refine_fused``, the
+  config's ``[models]`` refinement and fusion settings): the latent refined by the touches'
+  voxel constraints on the prior's posed grid, the pose fitted, and the surface bent through
+  every measured point by the Gaussian-process correction (``models.touch.fused``).
+* ``ideal_touches_mm``: the same touches with the prior update (``LearnedPerception.refine_with``
+  on the merged voxel constraints of all touches so far).
+
+Each ideal touch is a pad-sized range image (a :class:`TouchResult`, world-frame rays): every
+ray of the pad, 1 mm apart, measures its first hit on the true mesh within ``IDEAL_DEPTH_M`` of
+the target, at a random surface point approached along the true normal. That is far more than
+a GelSight touch gives: the gel images only where it is pressed, a few square millimetres at
+the contact force, and the target is not known to lie on the surface. Both updates see the same
+touches (the same seeds). ``ideal_oracle_touches[_fused]_mm``: each touch the best of K random
+targets by the truth.
 
 A touch policy or a refinement that lowers the error by more than the ideal touches do would
 have to know more than they measure; the latent fit bounds every latent refinement.
@@ -26,9 +36,9 @@ import math
 import multiprocessing
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from functools import partial
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -38,6 +48,7 @@ from controller.benchmarks.explore import ExploreSettings, ObjectRun, with_threa
 from controller.benchmarks.explore_summary import change_pct
 from controller.config import Config
 from controller.motion.planner import pad_pose_facing
+from controller.perception.learned import LearnedPerception
 from controller.perception.protocol import ShapeEstimate
 from models.geometry import VoxelGrid
 from models.prior.evaluation import EvalObject
@@ -62,6 +73,18 @@ MIN_TARGET_HEIGHT_M = 0.01
 MAX_DOWNWARD_NORMAL_Z = -0.5
 """Targets on the bottom (normals pointing down more than this) are left out, as the pipeline's
 table filter leaves out approaches from below."""
+UPDATES = ("fused", "prior")
+"""The shape updates the ideal touches are refined by (:func:`refiner`)."""
+CURVE_KEYS = {
+    ("prior", False): "ideal_touches",
+    ("prior", True): "ideal_oracle_touches",
+    ("fused", False): "ideal_touches_fused",
+    ("fused", True): "ideal_oracle_touches_fused",
+}
+"""(update, oracle) -> the row's curve key (``<key>_mm``) and the summary's."""
+
+Refine = Callable[[ShapeEstimate, list[TouchResult]], ShapeEstimate]
+"""``refine(estimate, touches)``: ``estimate`` refined by all touches so far (the newest last)."""
 
 
 @dataclass(frozen=True)
@@ -75,22 +98,27 @@ class BoundsSettings:
     """Also the ideal touches chosen by the truth among this many random targets each (0: no)."""
     prior: str = "general"
     seed: int = 0
+    updates: tuple[str, ...] = UPDATES
+    """The shape updates with ideal touches (``fused``, ``prior``)."""
 
     def __post_init__(self) -> None:
         if not self.touch_counts or min(self.touch_counts) < 1:
             raise ValueError("touch counts must be >= 1")
+        unknown = [u for u in self.updates if u not in UPDATES]
+        if unknown or not self.updates or len(set(self.updates)) != len(self.updates):
+            raise ValueError(f"updates {self.updates}: distinct, from {', '.join(UPDATES)}")
         if self.fit_steps < 0 or self.oracle_candidates < 0:
             raise ValueError("fit_steps and oracle_candidates must be >= 0")
 
 
 def ideal_touch(
     mesh_world: trimesh.Trimesh,
-    grid: VoxelGrid,
     point_world: np.ndarray,
     normal_world: np.ndarray,
     pad_size_m: tuple[float, float],
-) -> VoxelConstraints:
-    """The voxel constraints of an ideal range-imaging touch at a surface point (module doc)."""
+) -> TouchResult:
+    """An ideal range-imaging touch at a surface point (module doc): world-frame rays, those
+    that hit ending on the true surface, the others free to ``IDEAL_DEPTH_M`` beyond it."""
     pose_world_pad = pad_pose_facing(point_world, normal_world, IDEAL_STANDOFF_M)
     direction = pose_world_pad[:3, 2]
     origins = pad_grid_world(pose_world_pad, pad_size_m, IDEAL_RAY_SPACING_M)
@@ -104,9 +132,16 @@ def ideal_touch(
         if (location - origins[ray]) @ direction <= reach:
             hit[ray], ends[ray] = True, location
     if not hit.any():
-        return touch_constraints(TouchResult.from_miss(origins, ends), grid)
-    touch = TouchResult.from_contact(ends[hit], direction, origins[0], ends[~hit])
-    return touch_constraints(touch, grid)
+        return TouchResult.from_miss(origins, ends)
+    return TouchResult.from_contact(ends[hit], direction, origins[0], ends[~hit])
+
+
+def merged_constraints(touches: Sequence[TouchResult], grid: VoxelGrid) -> VoxelConstraints:
+    """The voxel constraints of all ``touches`` on ``grid``."""
+    constraints = VoxelConstraints.none(grid.resolution)
+    for touch in touches:
+        constraints = constraints.merged(touch_constraints(touch, grid))
+    return constraints
 
 
 def ideal_targets(
@@ -146,34 +181,64 @@ def _chamfer_mm(run: ObjectRun, probabilities: np.ndarray) -> float | None:
     return run.metrics(replace(run.vision, probabilities=volume))["chamfer_mm"]
 
 
+class IdealCurve(NamedTuple):
+    """One ideal touch curve (:func:`ideal_touch_curve`)."""
+
+    chamfer_mm: list[float | None]
+    """After 0..K touches (None: an empty prediction)."""
+    touches: list[TouchResult]
+    """The touches made."""
+    estimate: ShapeEstimate
+    """The estimate after the last touch."""
+
+
 def ideal_touch_curve(
     run: ObjectRun,
-    refine: Callable[[ShapeEstimate, VoxelConstraints], ShapeEstimate],
+    refine: Refine,
     pad_size_m: tuple[float, float],
     touches: int,
     candidates_per_touch: int,
     seed: int,
-) -> tuple[list[float | None], list[VoxelConstraints]]:
+) -> IdealCurve:
     """Chamfer distance after 0..``touches`` ideal touches from the vision estimate, each the
-    best of ``candidates_per_touch`` random targets by the truth (1: no choice), and the
-    constraints of the touches made."""
+    best of ``candidates_per_touch`` random targets by the truth (1: no choice), refined by
+    ``refine`` with all touches so far and scored by ``run.metrics``."""
     points, normals = ideal_targets(run.mesh_world, touches * candidates_per_touch, seed)
-    estimate, constraints = run.vision, VoxelConstraints.none(run.grid.resolution)
-    chamfers, made = [run.vision_metrics["chamfer_mm"]], []
+    estimate, made = run.vision, []
+    chamfers = [run.vision_metrics["chamfer_mm"]]
     for touch in range(touches):
         trials = []
         for index in range(touch * candidates_per_touch, (touch + 1) * candidates_per_touch):
-            touched = ideal_touch(
-                run.mesh_world, run.grid, points[index], normals[index], pad_size_m
-            )
-            merged = constraints.merged(touched)
-            refined = refine(estimate, merged)
-            error = _chamfer_mm(run, refined.probabilities)
-            trials.append((math.inf if error is None else error, index, touched, merged, refined))
-        error, _, touched, constraints, estimate = min(trials, key=lambda trial: trial[:2])
+            touched = ideal_touch(run.mesh_world, points[index], normals[index], pad_size_m)
+            refined = refine(estimate, [*made, touched])
+            error = run.metrics(refined)["chamfer_mm"]
+            trials.append((math.inf if error is None else error, index, touched, refined))
+        error, _, touched, estimate = min(trials, key=lambda trial: trial[:2])
         chamfers.append(None if math.isinf(error) else error)  # inf: an empty prediction
         made.append(touched)
-    return chamfers, made
+    return IdealCurve(chamfers, made, estimate)
+
+
+def refiner(run: ObjectRun, perception: LearnedPerception, update: str) -> Refine:
+    """The pipeline's refinement by ``update``: ``fused`` (:meth:`LearnedPerception.
+    refine_fused` on the touches) or ``prior`` (:meth:`LearnedPerception.refine_with` on their
+    merged voxel constraints in the estimate's grid)."""
+    if update == "fused":
+        fused_request = run.request("active", "fused")
+
+        def refine_fused(estimate: ShapeEstimate, touches: list[TouchResult]) -> ShapeEstimate:
+            return perception.refine_fused(estimate, touches, fused_request)
+
+        return refine_fused
+    if update != "prior":
+        raise ValueError(f"unknown update {update!r}; choose from {', '.join(UPDATES)}")
+    prior_request = run.request("active", "prior")
+
+    def refine_prior(estimate: ShapeEstimate, touches: list[TouchResult]) -> ShapeEstimate:
+        constraints = merged_constraints(touches, run.grid)
+        return perception.refine_with(estimate, constraints, prior_request)
+
+    return refine_prior
 
 
 def object_bounds(
@@ -207,23 +272,21 @@ def object_bounds(
             "latent_fit_mm": _chamfer_mm(run, fitted_probabilities),
         }
         perception = run.perception(settings.seed)
-        request = run.request("active", "prior")
-
-        def refine(estimate: ShapeEstimate, constraints: VoxelConstraints) -> ShapeEstimate:
-            return perception.refine_with(estimate, constraints, request)
-
-        sensor = config.sensor
-        pad_size_m = (sensor.pad_width_mm * 1e-3, sensor.pad_height_mm * 1e-3)
-        curve = partial(ideal_touch_curve, run, refine, pad_size_m, touches)
-        row["ideal_touches_mm"], made = curve(1, run.metric_seed)
+        pad_size_m = perception.pad_size_m
+        made: list[TouchResult] = []
+        for update in settings.updates:
+            # The same seeds for every update: they see the same touches.
+            curve = partial(ideal_touch_curve, run, refiner(run, perception, update), pad_size_m)
+            ideal = curve(touches, 1, run.metric_seed)
+            row[f"{CURVE_KEYS[update, False]}_mm"], made = ideal.chamfer_mm, ideal.touches
+            if settings.oracle_candidates > 1:
+                oracle = curve(touches, settings.oracle_candidates, run.metric_seed + 1)
+                row[f"{CURVE_KEYS[update, True]}_mm"] = oracle.chamfer_mm
+        constraints = [touch_constraints(touch, run.grid) for touch in made]
         row["ideal_voxels_per_touch"] = {
-            "occupied": float(np.mean([len(touch.occupied) for touch in made])),
-            "empty": float(np.mean([len(touch.empty) for touch in made])),
+            "occupied": float(np.mean([len(c.occupied) for c in constraints])),
+            "empty": float(np.mean([len(c.empty) for c in constraints])),
         }
-        if settings.oracle_candidates > 1:
-            row["ideal_oracle_touches_mm"], _ = curve(
-                settings.oracle_candidates, run.metric_seed + 1
-            )
         return row
     finally:
         run.close()
@@ -239,7 +302,7 @@ def summarise_bounds(rows: Sequence[dict[str, Any]], touch_counts: Sequence[int]
         summary[f"{name}_change_pct"] = finite_mean(
             [change_pct(row["vision_mm"], row[key]) for row in rows]
         )
-    for key in ("ideal_touches", "ideal_oracle_touches"):
+    for key in CURVE_KEYS.values():
         curves = [(row["vision_mm"], row[f"{key}_mm"]) for row in rows if f"{key}_mm" in row]
         if curves:
             summary[key] = {
@@ -261,8 +324,9 @@ def run_bounds(
     calibration: GelSightLUT,
     workers: int = 1,
 ) -> dict[str, Any]:
-    """The bounds JSON: per object ``vision_mm``, ``floor_mm``, ``latent_fit_mm``,
-    ``ideal_touches_mm`` (after 0..K touches) and a ``summary`` (docs/explore.md)."""
+    """The bounds JSON: per object ``vision_mm``, ``floor_mm``, ``latent_fit_mm``, the ideal
+    touch curves of every update (``ideal_touches_fused_mm``, ``ideal_touches_mm``, after 0..K
+    touches; the oracle's with ``oracle_candidates``) and a ``summary`` (docs/explore.md)."""
     args = [(config, calibration, prior, obj, settings) for obj in objects]
     if workers <= 1:
         rows = [object_bounds(*a) for a in args]
@@ -274,11 +338,17 @@ def run_bounds(
             ]
             rows = [future.result() for future in futures]
     models = config.models
+    fusion = LearnedPerception(
+        config,
+        camera_position_world=config.cameras.rgbd.pose_world_camera()[:3, 3],
+        calibration=calibration,
+    ).fusion_settings
     return {
         "prior": prior.name,
         "seed": settings.seed,
         "fit": {"steps": settings.fit_steps, "learning_rate": settings.fit_learning_rate},
         "oracle_candidates": settings.oracle_candidates,
+        "updates": list(settings.updates),
         "ideal_touch": {
             "ray_spacing_mm": IDEAL_RAY_SPACING_M * 1e3,
             "depth_beyond_target_mm": IDEAL_DEPTH_M * 1e3,
@@ -290,6 +360,7 @@ def run_bounds(
             "iterations_per_touch": models.refine_iterations_per_touch,
             "anchor_weight": models.refine_anchor_weight,
             "write_measurements": models.refine_write_measurements,
+            "fusion": asdict(fusion),
         },
         "chamfer": "mm, unsquared: mean NN distance pred->gt + gt->pred, 10k samples each",
         "objects": rows,

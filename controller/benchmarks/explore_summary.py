@@ -12,8 +12,9 @@ import numpy as np
 from controller.perception.learned import REPEAT_RADIUS_M
 from models.prior.evaluation import _mean as finite_mean
 
-METRICS = ("chamfer_mm", "fscore_5mm", "fscore_2mm", "iou")
-"""The shape metrics of a curve, one value after each number of touches."""
+METRICS = ("chamfer_mm", "fscore_5mm", "fscore_2mm", "iou", "touch_fidelity_mm")
+"""The shape metrics of a curve, one value after each number of touches (the touch fidelity:
+the median distance from the contact points so far to the surface, None before a contact)."""
 
 
 def _mean_curve(curves: Sequence[Sequence[float | None]]) -> list[float | None]:
@@ -95,6 +96,8 @@ def summarise(objects: Sequence[dict], methods: Sequence[str], touches: int) -> 
         summary["methods"][method] = entry
     curves = {m: summary["methods"][m]["chamfer_mm"] for m in methods}
     bar: dict[str, Any] = {}
+    if "active-fused" in curves:
+        bar.update(_fused_bar(objects, summary["methods"], curves, touches))
     if "active-prior" in curves:
         change = summary["methods"]["active-prior"]["chamfer_change_pct"]
         bar["active_prior_chamfer_change_pct"] = change
@@ -115,6 +118,59 @@ def summarise(objects: Sequence[dict], methods: Sequence[str], touches: int) -> 
             bar["active_beats_direct_at_end"] = below(curves["active-direct"], [touches])
     summary["bar"] = bar
     return summary
+
+
+def _fused_bar(
+    objects: Sequence[dict], methods: dict[str, Any], curves: dict[str, list], touches: int
+) -> dict[str, Any]:
+    """The fused shape's bar (issue 17): active-fused lowers the Chamfer distance by >= 30 %
+    per object on average to <= 3.5 mm, no object ends > 1 % worse than its vision estimate,
+    it beats random-fused at 3, 5 and N touches (by >= 5 % at N), and the touch fidelity's
+    median is <= 0.3 mm after N touches."""
+    entry = methods["active-fused"]
+    changes = [
+        change_pct(
+            o["methods"]["active-fused"]["chamfer_mm"][0],
+            o["methods"]["active-fused"]["chamfer_mm"][-1],
+        )
+        for o in objects
+    ]
+    worst = max((c for c in changes if c is not None), default=None)
+    final = entry["chamfer_mm"][-1]
+    fidelity = [
+        v
+        for o in objects
+        for v in [o["methods"]["active-fused"]["touch_fidelity_mm"][-1]]
+        if v is not None
+    ]
+    bar: dict[str, Any] = {
+        "active_fused_chamfer_change_pct": entry["chamfer_change_pct"],
+        "active_fused_final_chamfer_mm": final,
+        "active_fused_worst_object_change_pct": worst,
+        "active_fused_touch_fidelity_median_mm": float(np.median(fidelity)) if fidelity else None,
+    }
+    bar["active_fused_lowers_chamfer_30pct_to_3_5mm"] = (
+        entry["chamfer_change_pct"] is not None
+        and entry["chamfer_change_pct"] <= -30.0
+        and final is not None
+        and final <= 3.5
+    )
+    bar["no_object_worse_than_1pct"] = worst is not None and worst <= 1.0
+    bar["touch_fidelity_within_0_3mm"] = bool(fidelity) and float(np.median(fidelity)) <= 0.3
+    if "random-fused" in curves:
+        active, random = curves["active-fused"], curves["random-fused"]
+        counts = sorted({min(3, touches), min(5, touches), touches})
+        bar["active_fused_vs_random_fused_pct"] = {
+            n: change_pct(random[n], active[n]) for n in counts
+        }
+        bar["active_fused_beats_random_fused"] = (
+            all(
+                active[n] is not None and random[n] is not None and active[n] < random[n]
+                for n in counts
+            )
+            and (change_pct(random[touches], active[touches]) or 0.0) <= -5.0
+        )
+    return bar
 
 
 def plot_curves(result: dict, path: Path) -> None:

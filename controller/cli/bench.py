@@ -19,12 +19,14 @@ if TYPE_CHECKING:
     from models.prior.evaluation import EvalObject
     from models.prior.shape_prior import ShapePrior
 
-METHODS = "active-prior,random-prior,active-direct,oracle-prior"
-"""All methods, the default (``controller.benchmarks.explore.METHODS`` defines them)."""
+METHODS = (
+    "active-fused,random-fused,oracle-fused,active-prior,random-prior,active-direct,oracle-prior"
+)
+"""All methods (``controller.benchmarks.explore.METHODS`` defines them)."""
+DEFAULT_METHODS = "active-fused,random-fused,active-prior,oracle-fused"
 EPILOG = """examples:
-  touchshape bench explore --touches 10 --methods active-prior,random-prior,active-direct,\
-oracle-prior --random-runs 3 --oracle-candidates 4 --json logs/bench_explore.json \
---plot docs/explore.png
+  touchshape bench explore --touches 10 --methods active-fused,random-fused,active-prior,\
+oracle-fused --random-runs 10 --workers 2 --json logs/bench_explore.json --plot docs/explore.png
   touchshape bench explore --objects my.obj --up-axis y --touches 5 --methods active-prior \
 --json logs/mine.json
 """
@@ -32,6 +34,7 @@ BOUNDS_EPILOG = """examples:
   touchshape bench explore-bounds --touches 10 30 --workers 2 --json logs/bench_explore_bounds.json
   touchshape bench explore-bounds --touches 10 --oracle-candidates 8 --workers 2 \
 --json logs/bench_explore_bounds_oracle.json
+  touchshape bench explore-bounds --touches 10 --updates fused --json /tmp/bounds_fused.json
 """
 
 
@@ -99,10 +102,10 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
     explore.add_argument("--touches", type=int, default=10, help="touches per method")
     explore.add_argument(
         "--methods",
-        default=METHODS,
-        help=f"comma-separated, of: {METHODS}",
+        default=DEFAULT_METHODS,
+        help=f"comma-separated, of: {METHODS} (default: {DEFAULT_METHODS})",
     )
-    explore.add_argument("--random-runs", type=int, default=10, help="runs of random-prior")
+    explore.add_argument("--random-runs", type=int, default=10, help="runs of each random method")
     explore.add_argument(
         "--oracle-candidates",
         type=int,
@@ -151,6 +154,13 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
         type=int,
         default=0,
         help="also ideal touches each chosen by the truth among this many targets (0: no)",
+    )
+    bounds.add_argument(
+        "--updates",
+        nargs="+",
+        choices=("fused", "prior"),
+        default=["fused", "prior"],
+        help="shape updates refined by the ideal touches (default: both)",
     )
     bounds.add_argument("--prior", default=None, help="prior name (default: the config's)")
     bounds.add_argument("--seed", type=int, default=0)
@@ -365,6 +375,7 @@ def bench_explore_bounds(args: argparse.Namespace) -> int:
         oracle_candidates=args.oracle_candidates,
         prior=prior_name,
         seed=args.seed,
+        updates=tuple(args.updates),
     )
     _run_and_print(run_bounds, args, config, prior_name, settings)
     return 0

@@ -22,7 +22,12 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
     explore.add_argument("--object", help="sim object: category or mesh file (default: config)")
     explore.add_argument("--touches", type=int, default=10, help="touch budget (1..100)")
     explore.add_argument("--policy", choices=["active", "random"], default="active")
-    explore.add_argument("--update", choices=["prior", "direct"], default="prior")
+    explore.add_argument(
+        "--update",
+        choices=["fused", "prior", "direct"],
+        default=None,
+        help="how touches change the shape (default: the config's, fused)",
+    )
     explore.add_argument("--input", choices=["rgb", "rgbd"], default="rgb")
     explore.set_defaults(handler=_explore)
 
@@ -40,7 +45,7 @@ def _explore(args: argparse.Namespace) -> int:
     request = ExploreRequest(
         max_touches=args.touches,
         policy=args.policy,
-        update=args.update,
+        update=args.update or config.models.update,
         input=args.input,
         prior=config.models.prior,
     )

@@ -33,6 +33,7 @@ from controller.request import ExploreRequest
 from drivers.base import RGBDFrame
 from drivers.factory import Devices
 from models.geometry import VoxelGrid, make_transform
+from models.object_bound import object_depth_points
 from models.prior.auto import AUTO, choose_prior
 from models.prior.networks import LATENT_DIM
 from models.prior.shape_prior import ShapePrior, available_priors
@@ -42,7 +43,11 @@ from models.tactile.lut import (
     default_datapack_path,
     load_datapack,
 )
-from models.tactile.reconstruction import TactileReconstructor, contact_geometry
+from models.tactile.reconstruction import (
+    TactileReconstructor,
+    check_height_map,
+    contact_geometry,
+)
 from models.touch.constraints import (
     TouchResult,
     VoxelConstraints,
@@ -50,6 +55,8 @@ from models.touch.constraints import (
     pad_grid_world,
     touch_constraints,
 )
+from models.touch.fused import FusedShape, FusionSettings, Pose, posed_grid
+from models.touch.observations import SurfaceObservations, camera_observations, observations_of
 from models.touch.policy import (
     above_table_filter,
     all_of,
@@ -156,7 +163,13 @@ class LearnedPerception:
         )
         if request.prior == AUTO:
             log.info("prior auto: %s (silhouette agreement %s)", prediction.prior, scores)
-        return ShapeEstimate(
+        camera = SurfaceObservations.none()
+        if request.input == "rgbd":
+            points = object_depth_points(
+                frame.depth_m, frame.intrinsics, frame.pose_world_camera, prediction.grid
+            )
+            camera = camera_observations(points, frame.pose_world_camera[:3, 3])
+        estimate = ShapeEstimate(
             grid=prediction.grid,
             probabilities=prediction.probabilities,
             latent=prediction.latent,
@@ -168,7 +181,17 @@ class LearnedPerception:
             },
             vision_probabilities=prediction.probabilities,
             vision_latent=prediction.latent,
+            camera_observations=camera,
         )
+        if request.update == "fused" and not camera.is_empty:
+            # The camera's depth is fused like a touch: the estimate before any touch has it.
+            fused = FusedShape.from_prior(
+                prediction.probabilities, prediction.grid, camera, self.fusion_settings
+            )
+            estimate = replace(
+                estimate, probabilities=self._fused_probabilities(fused, estimate.grid), fused=fused
+            )
+        return estimate
 
     def select(
         self,
@@ -222,6 +245,11 @@ class LearnedPerception:
 
     def interpret(self, measurement: TouchMeasurement) -> TouchOutcome:
         reconstruction = self._reconstructor(measurement).reconstruct(measurement.tactile.image_bgr)
+        check_height_map(
+            reconstruction.height_mm,
+            measurement.tactile.image_bgr.shape[:2],
+            contact=measurement.contact,
+        )
         pose_world_pad = measurement.pose_world_pad
         direction = pose_world_pad[:3, 2]
         start = measurement.pad_start_world
@@ -260,7 +288,68 @@ class LearnedPerception:
     def refine(
         self, estimate: ShapeEstimate, outcomes: list[TouchOutcome], request: ExploreRequest
     ) -> ShapeEstimate:
+        if request.update == "fused" and estimate.vision_probabilities is not None:
+            touches = [o.touch for o in outcomes if o.touch is not None]
+            return self.refine_fused(estimate, touches, request)
         return self.refine_with(estimate, self.constraints(outcomes, estimate.grid), request)
+
+    def refine_fused(
+        self, estimate: ShapeEstimate, touches: list[TouchResult], request: ExploreRequest
+    ) -> ShapeEstimate:
+        """The fused update from all touches so far (however measured): the prior's shape
+        (its latent refined by the touch loss on its posed grid when
+        ``fusion_refine_latent``), its pose fitted (``fusion_pose_fit``), its surface bent
+        through every measurement (``models.touch.fused``)."""
+        models = self.config.models
+        base_grid = estimate.grid
+        pose = estimate.fused.pose if estimate.fused is not None else Pose()
+        latent, prior_voxels = estimate.latent, estimate.vision_probabilities
+        if models.fusion_refine_latent and estimate.latent is not None:
+            constraints = VoxelConstraints.none(base_grid.resolution)
+            for touch in touches:
+                constraints = constraints.merged(
+                    touch_constraints(touch, posed_grid(base_grid, pose))
+                )
+            result = refine_latent(
+                self.prior(estimate.prior or request.prior).decode,
+                torch.as_tensor(estimate.latent),
+                constraints,
+                learning_rate=models.refine_learning_rate,
+                iterations=models.refine_iterations_per_touch,
+                loss=models.refine_loss,
+                anchor_latent=torch.as_tensor(estimate.vision_latent),
+                anchor_weight=models.refine_anchor_weight,
+            )
+            latent, prior_voxels = result.latent, result.voxels.numpy()
+        observations = SurfaceObservations.merged(
+            [estimate.camera_observations, observations_of(touches)]
+        )
+        fused = FusedShape.from_prior(
+            prior_voxels, base_grid, observations, self.fusion_settings, start_pose=pose
+        )
+        return replace(
+            estimate,
+            probabilities=self._fused_probabilities(fused, base_grid),
+            latent=latent,
+            fused=fused,
+        )
+
+    def _fused_probabilities(self, fused: FusedShape, grid: VoxelGrid) -> np.ndarray:
+        """What the policy, the safety bound and voxels.npz read: P(inside) with the field's
+        uncertainty (``fusion_policy = "variance"``), or with the prior's everywhere
+        ("window": the paper's |v - 0.5| policy on the fused shape, touched or not)."""
+        return fused.probabilities(
+            grid, use_variance=self.config.models.fusion_policy == "variance"
+        )
+
+    @property
+    def fusion_settings(self) -> FusionSettings:
+        models = self.config.models
+        return FusionSettings(
+            support_m=models.fusion_support_m,
+            prior_std_m=models.fusion_prior_std_m,
+            pose_fit=models.fusion_pose_fit,
+        )
 
     def refine_with(
         self, estimate: ShapeEstimate, constraints: VoxelConstraints, request: ExploreRequest

@@ -9,11 +9,14 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
+import trimesh
 from numpy.typing import NDArray
 
 from controller.request import ExploreRequest
 from drivers.base import RGBDFrame, TactileFrame
 from models.geometry import VoxelGrid
+from models.touch.fused import prior_surface
+from models.touch.observations import SurfaceObservations
 from models.touch.policy import TargetFilter
 
 FloatArray = NDArray[np.float64]
@@ -36,6 +39,19 @@ class ShapeEstimate:
     """The estimate from vision alone (what Direct Edit edits)."""
     vision_latent: Any | None = None
     """The prior's latent code from vision alone (what the refinement stays near)."""
+    camera_observations: SurfaceObservations = field(default_factory=SurfaceObservations.none)
+    """The camera's depth points of the visible side (RGB-D input), fused like touches."""
+    fused: Any | None = None
+    """The fused shape (``models.touch.fused.FusedShape``) when the fused update made this
+    estimate: ``probabilities`` are then its P(inside) at the voxel centres."""
+
+    def surface_mesh(self) -> trimesh.Trimesh:
+        """The estimate's surface (world metres), extracted at ``EXTRACTION_SPACING_M``: the
+        fused field's, or the voxel estimate's through the same extraction, so estimates of
+        every update compare like with like."""
+        if self.fused is not None:
+            return self.fused.mesh()
+        return prior_surface(self.probabilities, self.grid)
 
     def occupied_points_world(self, threshold: float = 0.5) -> FloatArray:
         """Centres of the voxels whose probability is above ``threshold`` (world, metres)."""

@@ -33,6 +33,7 @@ from scipy.linalg import cho_factor, cho_solve, solve_triangular
 from scipy.ndimage import distance_transform_edt, map_coordinates
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
+from scipy.spatial.distance import cdist
 from scipy.special import ndtr
 from skimage.measure import marching_cubes
 
@@ -48,6 +49,8 @@ _BAND_VOXELS = 3.0
 """Exact distances within this many voxels of the prior surface; a Euclidean distance
 transform beyond (only the sign matters far from it)."""
 _SAMPLES_PER_VOXEL_AREA = 25
+_EXACT_NEAR_M = 0.005
+"""The extraction evaluates the correction exactly this close to an observation."""
 """Surface samples per voxel face area for the exact distances (0.2 voxel apart)."""
 
 
@@ -81,7 +84,8 @@ class SignedDistanceGrid:
         band = np.abs(values) <= _BAND_VOXELS
         vertices, faces, _, _ = marching_cubes(np.pad(volume, 1), 0.5)
         mesh = trimesh.Trimesh(vertices - 0.5, faces, process=False)  # voxel coordinates
-        count = int(min(max(mesh.area * _SAMPLES_PER_VOXEL_AREA, 1000), 400_000))
+        # Capped: a 26 cm object's surface is ~6,000 voxel faces; a noisy field's is far more.
+        count = int(min(max(mesh.area * _SAMPLES_PER_VOXEL_AREA, 1000), 150_000))
         samples, _ = trimesh.sample.sample_surface(mesh, count, seed=0)
         samples = np.concatenate([samples, mesh.vertices])
         centres = np.argwhere(band) + 0.5
@@ -205,13 +209,18 @@ def fit_pose(
 class FusionSettings:
     """The Gaussian process's kernel and noise (metres)."""
 
-    support_m: float = 0.05
+    support_m: float = 0.035
     """Wendland kernel radius: the correction is zero beyond it from every observation."""
     prior_std_m: float = 0.004
     """Standard deviation of the correction before any touch: how far the prior's surface may be
     off, and the field's uncertainty far from touches."""
     surface_noise_m: float = 0.0002
-    normal_offset_m: float = 0.001
+    camera_noise_m: float = 0.0015
+    """The depth camera's points (RGB-D input): Kinect v2 noise at 0.6-0.8 m."""
+    normal_offset_m: float = 0.0
+    """Points this far along each contact's normal, outside and inside, held at +-offset so the
+    field's gradient follows the measured normals; 0: none (a patch's dense points already
+    orient the surface, and at edges the patch normals misled it: docs/touch.md)."""
     normal_noise_m: float = 0.0005
     free_target_m: float = 0.0005
     free_noise_m: float = 0.0005
@@ -221,7 +230,7 @@ class FusionSettings:
     """The standard deviation conditions on surface points thinned to this lattice (cheaper, a
     slight over-estimate)."""
     free_rounds: int = 3
-    pose_fit: bool = True
+    pose_fit: bool = False
 
 
 def wendland(distance_m: ArrayLike, support_m: float) -> FloatArray:
@@ -230,13 +239,9 @@ def wendland(distance_m: ArrayLike, support_m: float) -> FloatArray:
     return (1.0 - r) ** 4 * (4.0 * r + 1.0)
 
 
-def _cross_kernel(a: FloatArray, b: FloatArray, support_m: float, chunk: int = 20000) -> FloatArray:
+def _cross_kernel(a: FloatArray, b: FloatArray, support_m: float) -> FloatArray:
     """k(a_i, b_j) without the variance factor, (len(a), len(b))."""
-    out = np.empty((len(a), len(b)))
-    for lo in range(0, len(a), chunk):
-        d = np.linalg.norm(a[lo : lo + chunk, None, :] - b[None, :, :], axis=-1)
-        out[lo : lo + chunk] = wendland(d, support_m)
-    return out
+    return wendland(cdist(a, b), support_m)
 
 
 @dataclass
@@ -248,11 +253,19 @@ class Correction:
     variance_points_world: FloatArray
     variance_cholesky: FloatArray
     settings: FusionSettings
+    residuals_m: FloatArray
+    """The residuals it was fitted to (observed minus prior field)."""
     _tree: cKDTree | None = field(default=None, repr=False)
 
     @property
     def is_empty(self) -> bool:
         return len(self.points_world) == 0
+
+    @property
+    def largest_m(self) -> float:
+        """How large the correction gets: 1.5 x its largest residual (an interpolant of
+        residuals this smooth overshoots them by far less)."""
+        return 1.5 * float(np.abs(self.residuals_m).max()) if len(self.residuals_m) else 0.0
 
     def near(self, points_world: FloatArray) -> NDArray[np.bool_]:
         """Points within the kernel's support of some observation (elsewhere c = 0, s = prior)."""
@@ -265,16 +278,17 @@ class Correction:
 
     def mean(self, points_world: ArrayLike) -> FloatArray:
         points = np.asarray(points_world, dtype=float).reshape(-1, 3)
-        out = np.zeros(len(points))
-        near = self.near(points)
-        if near.any():
-            variance = self.settings.prior_std_m**2
-            out[near] = (
-                variance
-                * _cross_kernel(points[near], self.points_world, self.settings.support_m)
-                @ self.alpha
-            )
-        return out
+        if self.is_empty or len(points) == 0:
+            return np.zeros(len(points))
+        if self._tree is None:
+            self._tree = cKDTree(self.points_world)
+        # Only the pairs within the kernel's support (it is zero beyond).
+        support = self.settings.support_m
+        pairs = cKDTree(points).sparse_distance_matrix(self._tree, support, output_type="ndarray")
+        weights = wendland(pairs["v"], support) * self.alpha[pairs["j"]]
+        return self.settings.prior_std_m**2 * np.bincount(
+            pairs["i"], weights=weights, minlength=len(points)
+        )
 
     def std(self, points_world: ArrayLike) -> FloatArray:
         points = np.asarray(points_world, dtype=float).reshape(-1, 3)
@@ -304,26 +318,49 @@ def fit_correction(
     prior: SignedDistanceGrid, observations: SurfaceObservations, settings: FusionSettings
 ) -> Correction:
     """The process's posterior given the observations, around the prior's signed distance."""
-    surface = observations.surface_points_world
+    touched = observations.surface_source >= 0
+    surface = observations.surface_points_world[touched]
     keep = _thin(surface, settings.surface_spacing_m)
-    surface, normals = surface[keep], observations.surface_normals_world[keep]
+    surface, normals = surface[keep], observations.surface_normals_world[touched][keep]
+    # The camera's points (source -1): on the surface, within the depth noise; their normals
+    # are too rough for offset points.
+    seen = observations.surface_points_world[~touched]
     offset = settings.normal_offset_m
-    points = np.concatenate([surface, surface + offset * normals, surface - offset * normals])
+    offsets = (offset, -offset) if offset > 0 else ()
+    points = np.concatenate([surface, *(surface + o * normals for o in offsets), seen])
     targets = np.concatenate(
-        [np.zeros(len(surface)), np.full(len(surface), offset), np.full(len(surface), -offset)]
+        [np.zeros(len(surface)), *(np.full(len(surface), o) for o in offsets), np.zeros(len(seen))]
     )
     noise = np.concatenate(
         [
             np.full(len(surface), settings.surface_noise_m),
-            np.full(2 * len(surface), settings.normal_noise_m),
+            np.full(len(offsets) * len(surface), settings.normal_noise_m),
+            np.full(len(seen), settings.camera_noise_m),
         ]
     )
+    # The standard deviation conditions on the surface points only, thinned (see settings).
+    # The camera's (noisier, denser) points thinner still: the deviation near them stays at
+    # about the camera's noise whatever their spacing below the kernel's reach.
+    spacing = settings.variance_spacing_m
+    touch_anchors = surface[_thin(surface, spacing)]
+    seen_anchors = seen[_thin(seen, 3 * spacing)]
+    variance = _VarianceAnchors(
+        np.concatenate([touch_anchors, seen_anchors]),
+        np.concatenate(
+            [
+                np.full(len(touch_anchors), settings.surface_noise_m),
+                np.full(len(seen_anchors), settings.camera_noise_m),
+            ]
+        ),
+    )
+    residuals = targets - prior(points) if len(points) else targets
+    correction = _correction(points, residuals, noise, variance, settings)
     free = observations.free_points_world
     prior_free = prior(free) if len(free) else np.zeros(0)
+    # Free points farther outside the prior than the correction reaches stay outside.
+    close = prior_free < correction.largest_m + settings.free_target_m
+    free, prior_free = free[close], prior_free[close]
     held = np.zeros(len(free), bool)
-    correction = _correction(
-        points, targets - prior(points) if len(points) else targets, noise, surface, settings
-    )
     for _ in range(settings.free_rounds if len(free) else 0):
         # Free points the field puts inside (or on) the surface: hold them just outside.
         inside = (prior_free + correction.mean(free) < settings.free_target_m * 0.5) & ~held
@@ -335,28 +372,34 @@ def fit_correction(
         points = np.concatenate([points, free[added]])
         targets = np.concatenate([targets, np.full(len(added), settings.free_target_m)])
         noise = np.concatenate([noise, np.full(len(added), settings.free_noise_m)])
-        correction = _correction(points, targets - prior(points), noise, surface, settings)
+        correction = _correction(points, targets - prior(points), noise, variance, settings)
     return correction
+
+
+@dataclass(frozen=True)
+class _VarianceAnchors:
+    points_world: FloatArray
+    noise_m: FloatArray
 
 
 def _correction(
     points: FloatArray,
     residuals: FloatArray,
     noise: FloatArray,
-    surface: FloatArray,
+    anchors: _VarianceAnchors,
     settings: FusionSettings,
 ) -> Correction:
     if len(points) == 0:
         return Correction(
-            np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 0)), settings
+            np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 0)), settings, np.zeros(0)
         )
     alpha = _solve(points, residuals, noise, settings)
-    anchors = surface[_thin(surface, settings.variance_spacing_m)] if len(surface) else points[:0]
-    variance = settings.prior_std_m**2
-    gram = variance * _cross_kernel(anchors, anchors, settings.support_m)
-    gram[np.diag_indices_from(gram)] += settings.surface_noise_m**2
-    cholesky = np.linalg.cholesky(gram) if len(anchors) else np.zeros((0, 0))
-    return Correction(points, alpha, anchors, cholesky, settings)
+    gram = settings.prior_std_m**2 * _cross_kernel(
+        anchors.points_world, anchors.points_world, settings.support_m
+    )
+    gram[np.diag_indices_from(gram)] += anchors.noise_m**2
+    cholesky = np.linalg.cholesky(gram) if len(gram) else np.zeros((0, 0))
+    return Correction(points, alpha, anchors.points_world, cholesky, settings, residuals)
 
 
 # --- the fused shape ------------------------------------------------------------------------------
@@ -400,11 +443,23 @@ class FusedShape:
         points = np.asarray(points_world, dtype=float)
         return self.correction.std(points.reshape(-1, 3)).reshape(points.shape[:-1])
 
-    def probabilities(self, grid: VoxelGrid, std_floor_m: float = 0.0003) -> NDArray[np.float32]:
-        """P(inside) = Phi(-f / s) at ``grid``'s voxel centres, (N, N, N)."""
+    def probabilities(
+        self, grid: VoxelGrid, std_floor_m: float = 0.0003, *, use_variance: bool = True
+    ) -> NDArray[np.float32]:
+        """P(inside) = Phi(-f / s) at ``grid``'s voxel centres, (N, N, N); without
+        ``use_variance``, s is the prior's deviation everywhere (touched or not)."""
         centres = grid.voxel_centres_world().reshape(-1, 3)
-        std = np.hypot(self.std(centres), std_floor_m)
-        inside = ndtr(-self.sdf(centres) / std)
+        field = np.maximum(self.prior(centres), -centres[:, 2])
+        std = np.full(len(centres), self.correction.settings.prior_std_m)
+        # Only near the surface can the correction change the sign or the probability: farther
+        # than its largest value plus 4 prior deviations, P(inside) is 0 or 1 whatever it adds.
+        band = np.abs(field) < self.correction.largest_m + 4 * std
+        field[band] = self.sdf(centres[band])
+        if use_variance:
+            # Farther than 4 prior deviations from the fused surface, P is 0 or 1 anyway.
+            near = np.abs(field) < 4 * std
+            std[near] = self.std(centres[near])
+        inside = ndtr(-field / np.hypot(std, std_floor_m))
         return inside.reshape((grid.resolution,) * 3).astype(np.float32)
 
     def mesh(self, spacing_m: float = EXTRACTION_SPACING_M) -> trimesh.Trimesh:
@@ -426,8 +481,10 @@ def _object_box(shape: FusedShape, margin_m: float) -> tuple[FloatArray, FloatAr
 
 def extract_surface(shape: FusedShape, spacing_m: float = EXTRACTION_SPACING_M) -> trimesh.Trimesh:
     """Marching cubes of the field at 0 on a world-axis lattice of ``spacing_m`` around the
-    object. The correction is evaluated on a lattice 3x coarser and interpolated (it varies over
-    the kernel's support, centimetres); the prior's distance on the fine one. Outward normals."""
+    object; outward normals. The prior's distance is evaluated on the lattice; the correction
+    exactly within ``_EXACT_NEAR_M`` of the observations (where it follows the measured
+    surface's detail) and elsewhere on a lattice 3x coarser, interpolated (there it varies over
+    the kernel's support, centimetres)."""
     box = _object_box(shape, 3 * spacing_m + 3 * shape.correction.settings.prior_std_m)
     if box is None:
         return trimesh.Trimesh()
@@ -448,6 +505,14 @@ def extract_surface(shape: FusedShape, spacing_m: float = EXTRACTION_SPACING_M) 
         ]
         fine_index = np.stack(np.meshgrid(*index, indexing="ij"), axis=0)
         values = values + map_coordinates(correction, fine_index, order=1, mode="nearest")
+        distance, _ = cKDTree(shape.correction.points_world).query(
+            lattice.reshape(-1, 3), distance_upper_bound=_EXACT_NEAR_M
+        )
+        exact = np.flatnonzero(np.isfinite(distance))
+        flat_values, flat_lattice = values.reshape(-1), lattice.reshape(-1, 3)
+        flat_values[exact] = shape.prior(flat_lattice[exact]) + shape.correction.mean(
+            flat_lattice[exact]
+        )
     values = np.maximum(values, -lattice[..., 2])  # the table: nothing below z = 0
     values = np.pad(values, 1, constant_values=spacing_m)  # closed surface
     if values.min() >= 0 or values.max() <= 0:

@@ -154,6 +154,38 @@ class SurfaceObservations:
             raise ObservationsError(f"{path}: not a valid observations file ({error})") from error
 
 
+CAMERA_SPACING_M = 0.004
+"""Depth points are thinned to this lattice: the camera's noise (millimetres) is far coarser
+than the touches', and the process's cost is cubic in its points."""
+CAMERA_NORMAL_RADIUS_M = 0.008
+CAMERA_FREE_OFFSETS_M = (0.005, 0.015)
+"""Free points in front of each depth point, toward the camera (beyond the depth noise)."""
+
+
+def camera_observations(
+    points_world: ArrayLike, camera_position_world: ArrayLike
+) -> SurfaceObservations:
+    """The object's depth points (world, from ``object_bound.object_depth_points``) as
+    observations of source -1: thinned surface points with normals toward the camera's side,
+    and free space in front of them along the camera's rays."""
+    points = np.asarray(points_world, dtype=float).reshape(-1, 3)
+    if len(points) == 0:
+        return SurfaceObservations.none()
+    camera = np.asarray(camera_position_world, dtype=float).reshape(3)
+    surface = points[_thin(points, CAMERA_SPACING_M)]
+    to_camera = camera - surface
+    to_camera /= np.linalg.norm(to_camera, axis=1, keepdims=True)
+    normals = to_camera.copy()
+    tree = cKDTree(points)
+    for index, neighbours in enumerate(tree.query_ball_point(surface, CAMERA_NORMAL_RADIUS_M)):
+        if len(neighbours) >= 6:
+            local = points[neighbours] - points[neighbours].mean(axis=0)
+            normal = np.linalg.eigh(local.T @ local)[1][:, 0]
+            normals[index] = normal if normal @ to_camera[index] > 0 else -normal
+    free = np.concatenate([surface + offset * to_camera for offset in CAMERA_FREE_OFFSETS_M])
+    return SurfaceObservations(surface, normals, free, np.full(len(surface), -1, np.int64))
+
+
 def observations_of(touches: Iterable[TouchResult]) -> SurfaceObservations:
     """The observations of touches in order (``surface_source`` = their index)."""
     return SurfaceObservations.merged(

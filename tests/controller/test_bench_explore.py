@@ -187,7 +187,7 @@ def check_curves(result: dict, touches: int) -> None:
 def test_benchmark_json_on_a_small_object(config, calibration, tmp_path: Path) -> None:
     box = trimesh.creation.box((0.06, 0.05, 0.08), transform=make_transform(None, (0, 0, 0.04)))
     settings = ExploreSettings(
-        touches=2, methods=("active-direct", "random-prior"), random_runs=2, timing_resolutions=()
+        touches=2, methods=("active-fused", "random-prior"), random_runs=2, timing_resolutions=()
     )
     result = run_explore_benchmark(
         config,
@@ -200,7 +200,7 @@ def test_benchmark_json_on_a_small_object(config, calibration, tmp_path: Path) -
     json.dumps(result, allow_nan=False)  # strict JSON: no NaN or inf
     (obj,) = result["objects"]
     assert obj["name"] == "small_box" and set(obj["methods"]) == set(settings.methods)
-    active, random = obj["methods"]["active-direct"], obj["methods"]["random-prior"]
+    active, random = obj["methods"]["active-fused"], obj["methods"]["random-prior"]
     check_curves(active, 2)
     assert active["chamfer_mm"][0] == random["chamfer_mm"][0]  # one vision estimate
     assert len(random["runs"]) == 2
@@ -208,9 +208,14 @@ def test_benchmark_json_on_a_small_object(config, calibration, tmp_path: Path) -
         check_curves(run, 2)
     summary = result["summary"]
     assert summary["objects"] == 1 and summary["touches"] == 2
-    assert len(summary["methods"]["active-direct"]["chamfer_mm"]) == 3
+    assert len(summary["methods"]["active-fused"]["chamfer_mm"]) == 3
     assert "chamfer_change_pct" in summary["methods"]["random-prior"]
-    assert summary["bar"] == {}  # the bar needs active-prior
+    # The fused surface passes through what the touches measured.
+    if any(active["imprint"]):
+        assert active["touch_fidelity_mm"][-1] < 0.5
+    assert active["touch_fidelity_mm"][0] is None  # no contact before the first touch
+    assert "active_fused_chamfer_change_pct" in summary["bar"]
+    assert "active_prior_chamfer_change_pct" not in summary["bar"]
     assert result["timing"] == []
     plot_curves(result, tmp_path / "explore.png")
     assert (tmp_path / "explore.png").stat().st_size > 1000
@@ -221,6 +226,7 @@ def method_result(chamfer: list[float]) -> dict:
     return {
         "chamfer_mm": chamfer,
         **{key: [0.5] * (touches + 1) for key in ("fscore_5mm", "fscore_2mm", "iou")},
+        "touch_fidelity_mm": [None] + [0.2] * touches,
         "select_s": [0.01] * touches,
         "refine_s": [0.2] * touches,
         "contact": [True, False, True][:touches],
@@ -263,6 +269,33 @@ def test_summary_averages_curves_and_checks_the_bar() -> None:
         "active_beats_random_from_3": True,  # 8.0 < 10.0 at 3 touches
         "active_beats_direct_at_end": False,  # 8.0 = 8.0
     }
+
+
+def test_the_fused_bar_is_checked_per_object() -> None:
+    objects = [
+        {
+            "methods": {
+                "active-fused": method_result([10.0, 8.0, 7.0, 6.0]),
+                "random-fused": method_result([10.0, 9.0, 8.0, 7.0]),
+            }
+        },
+        {
+            "methods": {
+                "active-fused": method_result([4.0, 4.0, 4.1, 4.02]),  # +0.5 %: not worse than 1 %
+                "random-fused": method_result([4.0, 4.1, 4.1, 4.1]),
+            }
+        },
+    ]
+    bar = summarise(objects, ["active-fused", "random-fused"], 3)["bar"]
+    assert bar["active_fused_chamfer_change_pct"] == pytest.approx((-40.0 + 0.5) / 2)
+    assert bar["active_fused_worst_object_change_pct"] == pytest.approx(0.5)
+    assert bar["no_object_worse_than_1pct"] is True
+    assert bar["active_fused_final_chamfer_mm"] == pytest.approx(5.01)
+    assert bar["active_fused_lowers_chamfer_30pct_to_3_5mm"] is False  # -19.75 %, 5.01 mm
+    assert bar["touch_fidelity_within_0_3mm"] is True
+    assert bar["active_fused_beats_random_fused"] is True  # 5.01 vs 5.55: -9.7 %
+    objects[1]["methods"]["active-fused"]["chamfer_mm"][-1] = 4.1  # +2.5 %
+    assert summarise(objects, ["active-fused"], 3)["bar"]["no_object_worse_than_1pct"] is False
 
 
 def test_settings_reject_unknown_methods() -> None:

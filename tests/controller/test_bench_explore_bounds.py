@@ -12,12 +12,15 @@ import torch
 import trimesh
 
 from controller.benchmarks import explore_bounds
+from controller.benchmarks.explore import ExploreSettings, ObjectRun
 from controller.benchmarks.explore_bounds import (
     BoundsSettings,
     fit_latent_to_volume,
     ideal_targets,
     ideal_touch,
     ideal_touch_curve,
+    merged_constraints,
+    refiner,
     run_bounds,
     summarise_bounds,
 )
@@ -25,8 +28,10 @@ from controller.cli.main import main
 from controller.config import Config
 from controller.perception.learned import load_calibration
 from models.geometry import make_transform
+from models.metrics import distance_to_mesh
 from models.prior.evaluation import EvalObject
 from models.prior.shape_prior import ShapePrior
+from models.touch.constraints import touch_constraints
 
 RADIUS_M = 0.05
 CENTRE_M = np.array([0.0, 0.0, 0.06])
@@ -43,6 +48,16 @@ def grid():
     return Config().voxel_grid.grid((0.6, 0.0, 0.4))
 
 
+@pytest.fixture(scope="module")
+def calibration():
+    return load_calibration(Config())
+
+
+def small_box() -> EvalObject:
+    box = trimesh.creation.box((0.06, 0.05, 0.08), transform=make_transform(None, (0, 0, 0.04)))
+    return EvalObject("small_box", "file", box)
+
+
 def signed_distance_m(grid, ijk: np.ndarray) -> np.ndarray:
     """Distance of voxel centres from the sphere's surface (negative inside)."""
     centres = grid.voxel_to_world(ijk + 0.5)
@@ -51,7 +66,13 @@ def signed_distance_m(grid, ijk: np.ndarray) -> np.ndarray:
 
 def test_an_ideal_touch_empties_the_front_and_fills_the_surface(sphere, grid) -> None:
     normal = np.array([0.6, 0.0, 0.8])
-    touch = ideal_touch(sphere, grid, CENTRE_M + RADIUS_M * normal, normal, PAD_M)
+    result = ideal_touch(sphere, CENTRE_M + RADIUS_M * normal, normal, PAD_M)
+    # World-frame rays: the hits end on the true surface, every ray starts in front of it.
+    contacts = result.contact_points_world
+    assert len(contacts) > 100  # a 19 x 14 mm pad, 1 mm apart: within 20 mm, all on a sphere
+    assert np.allclose(np.linalg.norm(contacts - CENTRE_M, axis=1), RADIUS_M, atol=2e-4)
+    assert np.all(np.linalg.norm(result.ray_starts_world - CENTRE_M, axis=1) > RADIUS_M)
+    touch = touch_constraints(result, grid)
     voxel = grid.voxel_size_m
     # A 19 x 14 mm pad on a 4 mm grid: tens of surface voxels, and the sweep in front of them.
     assert len(touch.occupied) > 10 and len(touch.empty) > 5 * len(touch.occupied)
@@ -69,25 +90,53 @@ def test_ideal_targets_lie_on_the_surface_off_the_bottom(sphere) -> None:
     assert np.array_equal(points, longer[:20])  # a shorter run touches a longer one's first
 
 
-def test_the_ideal_oracle_keeps_the_best_candidate_each_touch(sphere, grid, monkeypatch) -> None:
-    # A stand-in error: the more occupied voxels the touches so far proved, the lower.
-    monkeypatch.setattr(
-        explore_bounds, "_chamfer_mm", lambda run, constraints: 1000.0 / len(constraints.occupied)
-    )
+def test_the_ideal_oracle_keeps_the_best_candidate_each_touch(sphere, grid) -> None:
+    # A stand-in refinement and error: the more occupied voxels the touches so far proved, the
+    # lower. The curve refines with every touch so far and scores through run.metrics.
+    def error(estimate: SimpleNamespace) -> dict:
+        return {"chamfer_mm": 1000.0 / len(merged_constraints(estimate.touches, grid).occupied)}
+
     run = SimpleNamespace(
-        mesh_world=sphere, grid=grid, vision=None, vision_metrics={"chamfer_mm": 9.0}
+        mesh_world=sphere, grid=grid, vision=None, vision_metrics={"chamfer_mm": 9.0}, metrics=error
     )
 
-    def refine(estimate, constraints):
-        return SimpleNamespace(probabilities=constraints)
+    def refine(estimate, touches):
+        return SimpleNamespace(touches=list(touches))
 
-    curve, made = ideal_touch_curve(run, refine, PAD_M, 2, 3, seed=0)
+    curve, made, estimate = ideal_touch_curve(run, refine, PAD_M, 2, 3, seed=0)
     points, normals = ideal_targets(sphere, 6, seed=0)
-    touches = [ideal_touch(sphere, grid, p, n, PAD_M) for p, n in zip(points, normals, strict=True)]
-    first = max(touches[:3], key=lambda t: len(t.occupied))
-    second = max(touches[3:], key=lambda t: len(first.merged(t).occupied))
-    assert curve == [9.0, 1000.0 / len(first.occupied), 1000.0 / len(first.merged(second).occupied)]
-    assert [len(t.occupied) for t in made] == [len(first.occupied), len(second.occupied)]
+    touches = [ideal_touch(sphere, p, n, PAD_M) for p, n in zip(points, normals, strict=True)]
+    first = max(touches[:3], key=lambda t: len(merged_constraints([t], grid).occupied))
+    second = max(touches[3:], key=lambda t: len(merged_constraints([first, t], grid).occupied))
+    best = [merged_constraints(made[: n + 1], grid) for n in range(2)]
+    assert curve == [9.0, 1000.0 / len(best[0].occupied), 1000.0 / len(best[1].occupied)]
+    assert [t.contact_points_world.tolist() for t in made] == [
+        t.contact_points_world.tolist() for t in (first, second)
+    ]
+    assert estimate.touches == made  # the same objects
+
+
+def test_the_refiners_pass_all_touches_to_the_pipeline(sphere, grid) -> None:
+    """Fused: the touches themselves, with a fused request; prior: their merged constraints."""
+    calls: list = []
+    perception = SimpleNamespace(
+        refine_fused=lambda estimate, touches, request: calls.append((touches, request)),
+        refine_with=lambda estimate, constraints, request: calls.append((constraints, request)),
+    )
+    run = SimpleNamespace(grid=grid, request=lambda policy, update: (policy, update))
+    points, normals = ideal_targets(sphere, 2, seed=1)
+    touches = [ideal_touch(sphere, p, n, PAD_M) for p, n in zip(points, normals, strict=True)]
+    refiner(run, perception, "fused")("vision", touches)
+    refiner(run, perception, "prior")("vision", touches)
+    (fused_touches, fused_request), (constraints, prior_request) = calls
+    assert fused_touches == touches  # the same objects
+    assert fused_request == ("active", "fused")
+    expected = touch_constraints(touches[0], grid).merged(touch_constraints(touches[1], grid))
+    assert np.array_equal(constraints.occupied, expected.occupied)
+    assert np.array_equal(constraints.empty, expected.empty)
+    assert prior_request == ("active", "prior")
+    with pytest.raises(ValueError):
+        refiner(run, perception, "direct")
 
 
 def test_the_latent_fit_matches_the_volume_better() -> None:
@@ -113,31 +162,61 @@ def test_summary_means_the_per_object_changes() -> None:
         {"vision_mm": 10.0, "floor_mm": 2.0, "latent_fit_mm": 6.0, "ideal_touches_mm": [10.0, 9.0]},
         {"vision_mm": 4.0, "floor_mm": 2.0, "latent_fit_mm": 4.0, "ideal_touches_mm": [4.0, 2.0]},
     ]
+    rows[0]["ideal_touches_fused_mm"] = [10.0, 5.0]
+    rows[1]["ideal_touches_fused_mm"] = [4.0, 1.0]
+    rows[1]["ideal_oracle_touches_fused_mm"] = [4.0, 3.0]
     summary = summarise_bounds(rows, (1,))
     assert summary["vision_mm"] == 7.0 and summary["latent_fit_mm"] == 5.0
     assert summary["latent_fit_change_pct"] == pytest.approx(-20.0)  # mean of -40 % and 0 %
     assert summary["floor_change_pct"] == pytest.approx(-65.0)
     assert summary["ideal_touches"]["1"] == {"chamfer_mm": 5.5, "change_pct": -30.0}
+    assert summary["ideal_touches_fused"]["1"] == {"chamfer_mm": 3.0, "change_pct": -62.5}
+    assert summary["ideal_oracle_touches_fused"]["1"] == {"chamfer_mm": 3.0, "change_pct": -25.0}
+    assert "ideal_oracle_touches" not in summary  # no row has that curve
 
 
-def test_bounds_json_on_a_small_object() -> None:
+def test_bounds_json_on_a_small_object(calibration) -> None:
     config = Config()
-    box = trimesh.creation.box((0.06, 0.05, 0.08), transform=make_transform(None, (0, 0, 0.04)))
     result = run_bounds(
         config,
-        [EvalObject("small_box", "file", box)],
-        BoundsSettings(touch_counts=(2,), fit_steps=3, oracle_candidates=2),
+        [small_box()],
+        BoundsSettings(touch_counts=(1,), fit_steps=3, oracle_candidates=2),
         prior=ShapePrior.untrained("cpu"),
-        calibration=load_calibration(config),
+        calibration=calibration,
     )
     json.dumps(result, allow_nan=False)
     (row,) = result["objects"]
-    assert row["name"] == "small_box" and len(row["ideal_touches_mm"]) == 3
-    assert 0.0 < row["floor_mm"] < 4.0  # the true voxels, within a voxel of the true surface
+    assert row["name"] == "small_box" and 0.0 < row["floor_mm"] < 4.0  # within a voxel
+    keys = ("ideal_touches", "ideal_oracle_touches", "ideal_touches_fused")
+    for key in (*keys, "ideal_oracle_touches_fused"):
+        assert len(row[f"{key}_mm"]) == 2 and row[f"{key}_mm"][0] == row["vision_mm"]
+        assert set(result["summary"][key]) == {"1"}
     assert row["ideal_voxels_per_touch"]["occupied"] > 0
-    assert len(row["ideal_oracle_touches_mm"]) == 3
-    assert set(result["summary"]["ideal_touches"]) == {"2"}
-    assert set(result["summary"]["ideal_oracle_touches"]) == {"2"}
+    assert result["updates"] == ["fused", "prior"]
+    fusion = result["refinement"]["fusion"]
+    assert fusion["support_m"] == config.models.fusion_support_m
+    assert fusion["prior_std_m"] == config.models.fusion_prior_std_m
+
+
+def test_ideal_touches_bend_the_fused_surface_through_their_contacts(calibration) -> None:
+    """The fused curve: its estimate is the fused shape, whose surface passes through what the
+    ideal touches measured (their contact points), and it lowers the error from vision."""
+    config = Config()
+    prior = ShapePrior.untrained("cpu")
+    run = ObjectRun(config, calibration, prior, small_box(), ExploreSettings(touches=2))
+    try:
+        perception = run.perception(0)
+        refine = refiner(run, perception, "fused")
+        curve = ideal_touch_curve(run, refine, perception.pad_size_m, 2, 1, run.metric_seed)
+        assert len(curve.chamfer_mm) == 3 and len(curve.touches) == 2
+        assert curve.chamfer_mm[-1] < curve.chamfer_mm[0]
+        assert curve.estimate.fused is not None
+        contacts = np.concatenate([touch.contact_points_world for touch in curve.touches])
+        assert len(contacts) > 100
+        distance_m = distance_to_mesh(contacts, curve.estimate.surface_mesh())
+        assert np.median(distance_m) < 0.5e-3
+    finally:
+        run.close()
 
 
 def test_the_bounds_command_runs_the_bounds_as_asked(
@@ -168,3 +247,13 @@ def test_the_bounds_command_runs_the_bounds_as_asked(
     assert calls["prior"] == "prior box" and calls["calibration"] == "calibration"
     assert calls["workers"] == 2 and calls["threads"] == 1
     assert json.loads(out.read_text())["summary"] == {"objects": 1}
+    assert main([*argv, "--prior", "box", "--updates", "prior"]) == 0
+    assert calls["settings"] == BoundsSettings((10, 30), prior="box", updates=("prior",))
+    with pytest.raises(SystemExit):
+        main([*argv, "--updates", "direct"])
+
+
+def test_bounds_settings_refuse_unknown_or_repeated_updates() -> None:
+    for updates in ((), ("direct",), ("fused", "fused")):
+        with pytest.raises(ValueError):
+            BoundsSettings(updates=updates)

@@ -18,6 +18,7 @@ from controller.request import ExploreRequest
 from controller.service import TouchshapeService
 from controller.states import TRANSITIONS, State
 from drivers.factory import Devices
+from models.touch.observations import SurfaceObservations
 from tests.fakes.devices import approach_start_world, assert_went_back_to, record_arm_moves
 from tests.fakes.perception import CylinderPerception, make_cylinder_perception
 
@@ -71,6 +72,8 @@ async def test_a_session_touches_and_records(tmp_path: Path) -> None:
     assert len(summary["metrics"]["chamfer_mm"]) == 4
     voxels = np.load(summary["artifacts"]["voxels"])
     assert voxels["probabilities"].shape == (64, 64, 64)
+    # The test perception keeps no rays: the observations file is there, and empty.
+    assert SurfaceObservations.load(summary["artifacts"]["observations"]).is_empty
 
 
 async def test_without_a_sim_world_nothing_is_scored_or_logged_as_truth(

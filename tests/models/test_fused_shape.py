@@ -69,7 +69,7 @@ def test_a_face_measured_5mm_out_moves_there(prior: np.ndarray) -> None:
     shape = FusedShape.from_prior(
         prior, GRID, observations(points, normals), FusionSettings(pose_fit=False)
     )
-    assert np.abs(shape.sdf(points)).max() < 2e-4
+    assert np.median(np.abs(shape.sdf(points))) < 1e-4 and np.abs(shape.sdf(points)).max() < 5e-4
     mesh = shape.mesh()
     # The face at the patch's centre is where the sensor measured it, not where vision put it.
     assert np.median(distance_to_mesh(points, mesh)) < 3e-4
