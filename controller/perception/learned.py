@@ -78,6 +78,9 @@ CONTACT_STRIDE_PX = 8
 """Every 8th pixel of the contact patch becomes a constraint ray (0.24 mm apart: far below a
 voxel, so no information is lost)."""
 FREE_RAY_SPACING_M = 0.002
+TABLE_CONTACT_M = 0.002
+"""Contact points this close to the table top are the table's (on the bench a random touch can
+press the gel onto the table beside a flat object)."""
 RANDOM_POLICY_TRIES = 50
 REPEAT_RADIUS_M = 0.005
 """A target this close to an earlier one, approached from the same direction, is not chosen
@@ -274,6 +277,8 @@ class LearnedPerception:
         # they tell nothing about the sweep.
         points = points[(points - start) @ direction >= 0]
         free = free[(free - start) @ direction >= 0]
+        # Where the gel pressed the table (world z = 0), it measured the table, not the object.
+        points = points[points[:, 2] > TABLE_CONTACT_M]
         if len(points):
             touch = TouchResult.from_contact(points, direction, start, free)
         else:

@@ -255,6 +255,8 @@ class Correction:
     settings: FusionSettings
     residuals_m: FloatArray
     """The residuals it was fitted to (observed minus prior field)."""
+    touched_world: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    """The touches' surface points it passes through (the extraction is exact near them)."""
     _tree: cKDTree | None = field(default=None, repr=False)
 
     @property
@@ -373,7 +375,7 @@ def fit_correction(
         targets = np.concatenate([targets, np.full(len(added), settings.free_target_m)])
         noise = np.concatenate([noise, np.full(len(added), settings.free_noise_m)])
         correction = _correction(points, targets - prior(points), noise, variance, settings)
-    return correction
+    return replace(correction, touched_world=surface)
 
 
 @dataclass(frozen=True)
@@ -482,9 +484,9 @@ def _object_box(shape: FusedShape, margin_m: float) -> tuple[FloatArray, FloatAr
 def extract_surface(shape: FusedShape, spacing_m: float = EXTRACTION_SPACING_M) -> trimesh.Trimesh:
     """Marching cubes of the field at 0 on a world-axis lattice of ``spacing_m`` around the
     object; outward normals. The prior's distance is evaluated on the lattice; the correction
-    exactly within ``_EXACT_NEAR_M`` of the observations (where it follows the measured
-    surface's detail) and elsewhere on a lattice 3x coarser, interpolated (there it varies over
-    the kernel's support, centimetres)."""
+    exactly within ``_EXACT_NEAR_M`` of the touches' surface points (where it follows the
+    measured surface's detail) and elsewhere on a lattice 3x coarser, interpolated (there it
+    varies over the kernel's support, centimetres)."""
     box = _object_box(shape, 3 * spacing_m + 3 * shape.correction.settings.prior_std_m)
     if box is None:
         return trimesh.Trimesh()
@@ -505,10 +507,13 @@ def extract_surface(shape: FusedShape, spacing_m: float = EXTRACTION_SPACING_M) 
         ]
         fine_index = np.stack(np.meshgrid(*index, indexing="ij"), axis=0)
         values = values + map_coordinates(correction, fine_index, order=1, mode="nearest")
-        distance, _ = cKDTree(shape.correction.points_world).query(
-            lattice.reshape(-1, 3), distance_upper_bound=_EXACT_NEAR_M
-        )
-        exact = np.flatnonzero(np.isfinite(distance))
+        touched = shape.correction.touched_world
+        exact = np.zeros(0, np.int64)
+        if len(touched):
+            distance, _ = cKDTree(touched).query(
+                lattice.reshape(-1, 3), distance_upper_bound=_EXACT_NEAR_M
+            )
+            exact = np.flatnonzero(np.isfinite(distance))
         flat_values, flat_lattice = values.reshape(-1), lattice.reshape(-1, 3)
         flat_values[exact] = shape.prior(flat_lattice[exact]) + shape.correction.mean(
             flat_lattice[exact]

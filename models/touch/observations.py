@@ -154,7 +154,7 @@ class SurfaceObservations:
             raise ObservationsError(f"{path}: not a valid observations file ({error})") from error
 
 
-CAMERA_SPACING_M = 0.004
+CAMERA_SPACING_M = 0.006
 """Depth points are thinned to this lattice: the camera's noise (millimetres) is far coarser
 than the touches', and the process's cost is cubic in its points."""
 CAMERA_NORMAL_RADIUS_M = 0.008

@@ -387,3 +387,25 @@ def test_a_mesh_file_runs_through_the_benchmark_deterministically(
                 first["objects"][0]["methods"][method][key]
                 == second["objects"][0]["methods"][method][key]
             )
+
+
+def test_where_the_gel_pressed_the_table_it_measured_no_object(
+    box_bench, config, calibration, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Contact points at the table top (a random touch beside a flat object can press the gel
+    onto the table) are the table's: dropped."""
+    import controller.perception.learned as learned
+    from models.geometry import invert_transform, transform_points
+    from models.tactile.reconstruction import TactileContact
+
+    target = TouchTarget(np.array([BOX_HALF_M, 0.0, 0.04]), np.array([-1.0, 0.0, 0.0]))
+    measurement = box_bench.touch(target, noise_seed=(0,))
+    assert measurement is not None and measurement.contact
+    pad = measurement.pose_world_pad
+    # Points on the face at heights 1 mm (the table's) and 3, 10 mm (the box's).
+    world = np.array([[BOX_HALF_M, 0.0, z] for z in (0.001, 0.003, 0.010)])
+    pad_mm = transform_points(invert_transform(pad), world) * 1e3
+    contact = TactileContact(pad_mm, np.array([0.0, 0.0, -1.0]))
+    monkeypatch.setattr(learned, "contact_geometry", lambda *args, **kwargs: contact)
+    outcome = perception_for(config, calibration).interpret(measurement)
+    assert np.allclose(outcome.contact_points_world[:, 2], [0.003, 0.010])
