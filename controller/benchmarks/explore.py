@@ -287,6 +287,11 @@ def _explore(run: ObjectRun, method: str, run_index: int, tick: Callable[[], Non
     estimate = run.vision
     outcomes: list[TouchOutcome] = []
     curves: dict[str, list] = {key: [value] for key, value in run.vision_metrics.items()}
+    if update == "fused" and not estimate.camera_observations.is_empty:
+        # RGB-D: the fused update starts from vision with the camera's depth fused in (as a
+        # session's reconstruct gives it), so its curve measures what the touches add.
+        estimate = perception.refine_fused(estimate, [], request)
+        curves = {key: [value] for key, value in run.metrics(estimate).items()}
     curves.update(
         select_s=[], refine_s=[], contact=[], imprint=[], touch_loss=[], flipped=[], target=[]
     )
