@@ -10,11 +10,11 @@ The field is a signed distance in metres (> 0 outside):
   distances to the marching-cubes surface at the voxel centres, trilinear between them), on the
   prior's grid moved by the pose fit (:func:`fit_pose`: translation on the table, yaw, scale);
 * ``c`` is the posterior mean of a zero-mean Gaussian process fitted to the residuals of the
-  observations (``models.touch.observations``): contact points lie on the surface (f = 0),
-  points ``NORMAL_OFFSET_M`` along their normal outside and inside (f = +-offset, so the
-  normals agree), free points that the field would put inside are held just outside (an
-  active set). Its kernel is Wendland's compactly supported C2 function, so the correction is
-  exactly zero beyond ``support_m`` from every observation: there the field is the prior's.
+  observations (``models.touch.observations``): contact points and the camera's depth points
+  lie on the surface (f = 0), free points that the field would put inside are held just
+  outside (an active set), and optionally points along the contacts' normals at f = +-offset.
+  Its kernel is Wendland's compactly supported C2 function, so the correction is exactly zero
+  beyond ``support_m`` from every observation: there the field is the prior's.
 
 The posterior standard deviation ``s`` of the correction says how well the surface is known;
 ``P(inside) = Phi(-f / s)`` turns the field into the occupancy probabilities the rest of the
@@ -38,7 +38,7 @@ from scipy.special import ndtr
 from skimage.measure import marching_cubes
 
 from models.geometry import VoxelGrid, rotation_about_axis
-from models.touch.observations import SurfaceObservations, _thin
+from models.touch.observations import SurfaceObservations, thin_to_lattice
 
 FloatArray = NDArray[np.float64]
 
@@ -176,7 +176,7 @@ def fit_pose(
     weights = _per_touch_weights(observations.surface_source)
     free = observations.free_points_world
     if len(free):
-        free = free[_thin(free, 0.004)]
+        free = free[thin_to_lattice(free, 0.004)]
     free_weight = 1.0 / math.sqrt(
         max(len(free) / max(len(np.unique(observations.surface_source)), 1), 1.0)
     )
@@ -322,7 +322,7 @@ def fit_correction(
     """The process's posterior given the observations, around the prior's signed distance."""
     touched = observations.surface_source >= 0
     surface = observations.surface_points_world[touched]
-    keep = _thin(surface, settings.surface_spacing_m)
+    keep = thin_to_lattice(surface, settings.surface_spacing_m)
     surface, normals = surface[keep], observations.surface_normals_world[touched][keep]
     # The camera's points (source -1): on the surface, within the depth noise; their normals
     # are too rough for offset points.
@@ -344,8 +344,8 @@ def fit_correction(
     # The camera's (noisier, denser) points thinner still: the deviation near them stays at
     # about the camera's noise whatever their spacing below the kernel's reach.
     spacing = settings.variance_spacing_m
-    touch_anchors = surface[_thin(surface, spacing)]
-    seen_anchors = seen[_thin(seen, 3 * spacing)]
+    touch_anchors = surface[thin_to_lattice(surface, spacing)]
+    seen_anchors = seen[thin_to_lattice(seen, 3 * spacing)]
     variance = _VarianceAnchors(
         np.concatenate([touch_anchors, seen_anchors]),
         np.concatenate(
@@ -369,7 +369,7 @@ def fit_correction(
         if not inside.any():
             break
         added = np.flatnonzero(inside)
-        added = added[_thin(free[added], settings.surface_spacing_m)]
+        added = added[thin_to_lattice(free[added], settings.surface_spacing_m)]
         held[added] = True
         points = np.concatenate([points, free[added]])
         targets = np.concatenate([targets, np.full(len(added), settings.free_target_m)])

@@ -36,7 +36,7 @@ class ObservationsError(ValueError):
     """An observations file is missing, corrupt or incomplete."""
 
 
-def _thin(points: FloatArray, spacing_m: float) -> NDArray[np.int64]:
+def thin_to_lattice(points: FloatArray, spacing_m: float) -> NDArray[np.int64]:
     """Indices of one point per occupied cell of a ``spacing_m`` lattice (the first one)."""
     if len(points) == 0:
         return np.zeros(0, np.int64)
@@ -106,13 +106,13 @@ class SurfaceObservations:
         contact."""
         direction = np.asarray(touch.approach_direction_world, dtype=float)
         contacts = touch.contact_points_world
-        keep = _thin(contacts, SURFACE_SPACING_M)
+        keep = thin_to_lattice(contacts, SURFACE_SPACING_M)
         surface = contacts[keep]
         normals = _normals(surface, contacts, direction)
         starts, ends = touch.ray_starts_world, touch.ray_ends_world.copy()
         ends[touch.ray_hit] -= FREE_MARGIN_M * direction
         free = _points_along(starts, ends, FREE_SPACING_M)
-        free = free[_thin(free, FREE_SPACING_M)]
+        free = free[thin_to_lattice(free, FREE_SPACING_M)]
         return cls(surface, normals, free, np.full(len(surface), source, np.int64))
 
     @classmethod
@@ -172,7 +172,7 @@ def camera_observations(
     if len(points) == 0:
         return SurfaceObservations.none()
     camera = np.asarray(camera_position_world, dtype=float).reshape(3)
-    surface = points[_thin(points, CAMERA_SPACING_M)]
+    surface = points[thin_to_lattice(points, CAMERA_SPACING_M)]
     to_camera = camera - surface
     to_camera /= np.linalg.norm(to_camera, axis=1, keepdims=True)
     normals = to_camera.copy()
