@@ -12,9 +12,9 @@ frame, the prior's vision estimate, the voxelised truth; every estimate measured
   latent can express, and this is close to it: complete knowledge of the shape, not 10 touches.
 * ``ideal_touches_fused_mm``: the curve after 0..K touches of an idealised sensor, with the
   fused update exactly as the pipeline makes it (``LearnedPerception.refine_fused``, the
-  config's ``[models]`` refinement and fusion settings): the latent refined by the touches'
-  voxel constraints on the prior's posed grid, the pose fitted, and the surface bent through
-  every measured point by the Gaussian-process correction (``models.touch.fused``).
+  config's ``[models]`` fusion settings): the prior's surface bent through every measured
+  point by the Gaussian-process correction (``models.touch.fused``; the latent refinement and
+  the pose fit first where the config enables them).
 * ``ideal_touches_mm``: the same touches with the prior update (``LearnedPerception.refine_with``
   on the merged voxel constraints of all touches so far).
 
