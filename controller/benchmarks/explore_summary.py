@@ -123,7 +123,7 @@ def summarise(objects: Sequence[dict], methods: Sequence[str], touches: int) -> 
 def _fused_bar(
     objects: Sequence[dict], methods: dict[str, Any], curves: dict[str, list], touches: int
 ) -> dict[str, Any]:
-    """The fused shape's bar (issue 17): active-fused lowers the Chamfer distance by >= 30 %
+    """The fused shape's bar: active-fused lowers the Chamfer distance by >= 30 %
     per object on average to <= 3.5 mm, no object ends > 1 % worse than its vision estimate,
     it beats random-fused at 3, 5 and N touches (by >= 5 % at N), and the touch fidelity's
     median is <= 0.3 mm after N touches."""
