@@ -194,9 +194,10 @@ class ModelsConfig:
     """Empty = the weights shipped with the package."""
     device: str = "cpu"
     update: Literal["fused", "prior", "direct"] = "fused"
-    """How touches change the shape (a request may choose another): "fused" fits the prior's
-    latent and pose and bends its surface through every measurement (models.touch.fused);
-    "prior" the paper's latent-only update; "direct" the paper's Direct Edit baseline."""
+    """How touches change the shape (a request may choose another): "fused" bends the prior's
+    surface through every measurement (models.touch.fused; the latent refinement and pose fit
+    first where enabled below); "prior" the paper's latent-only update; "direct" the paper's
+    Direct Edit baseline."""
     fusion_support_m: float = 0.035
     """The fused correction's reach from a touch (models.touch.fused.FusionSettings)."""
     fusion_prior_std_m: float = 0.004

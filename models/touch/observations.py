@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from models.files import write_atomically
 from models.touch.constraints import TouchResult
 
 FloatArray = NDArray[np.float64]
@@ -128,16 +129,14 @@ class SurfaceObservations:
         )
 
     def save(self, path: str | Path) -> Path:
-        """Write ``observations.npz`` (float32 metres; see docs/touch.md)."""
-        path = Path(path)
-        np.savez_compressed(
-            path,
-            surface_points_world_m=self.surface_points_world.astype(np.float32),
-            surface_normals_world=self.surface_normals_world.astype(np.float32),
-            free_points_world_m=self.free_points_world.astype(np.float32),
-            surface_source=self.surface_source.astype(np.int32),
-        )
-        return path
+        """Write ``observations.npz`` (float32 metres; see docs/touch.md), atomically."""
+        arrays = {
+            "surface_points_world_m": self.surface_points_world.astype(np.float32),
+            "surface_normals_world": self.surface_normals_world.astype(np.float32),
+            "free_points_world_m": self.free_points_world.astype(np.float32),
+            "surface_source": self.surface_source.astype(np.int32),
+        }
+        return write_atomically(Path(path), lambda temp: np.savez_compressed(temp, **arrays))
 
     @classmethod
     def load(cls, path: str | Path) -> SurfaceObservations:
