@@ -198,6 +198,7 @@ def test_bounds_json_on_a_small_object(calibration) -> None:
     assert fusion["prior_std_m"] == config.models.fusion_prior_std_m
 
 
+@pytest.mark.slow  # 30 s; the fused field's contacts are tested in tests/models/test_fused_shape.py
 def test_ideal_touches_bend_the_fused_surface_through_their_contacts(calibration) -> None:
     """The fused curve: its estimate is the fused shape, whose surface passes through what the
     ideal touches measured (their contact points), and it lowers the error from vision."""
