@@ -50,14 +50,13 @@ from controller.config import Config
 from controller.motion.planner import pad_pose_facing
 from controller.perception.learned import LearnedPerception
 from controller.perception.protocol import ShapeEstimate
-from models.geometry import VoxelGrid
 from models.prior.evaluation import EvalObject
 from models.prior.evaluation import _mean as finite_mean
 from models.prior.shape_prior import ShapePrior
 from models.tactile.lut import GelSightLUT
 from models.touch.constraints import (
     TouchResult,
-    VoxelConstraints,
+    constraints_from_touches,
     pad_grid_world,
     touch_constraints,
 )
@@ -134,14 +133,6 @@ def ideal_touch(
     if not hit.any():
         return TouchResult.from_miss(origins, ends)
     return TouchResult.from_contact(ends[hit], direction, origins[0], ends[~hit])
-
-
-def merged_constraints(touches: Sequence[TouchResult], grid: VoxelGrid) -> VoxelConstraints:
-    """The voxel constraints of all ``touches`` on ``grid``."""
-    constraints = VoxelConstraints.none(grid.resolution)
-    for touch in touches:
-        constraints = constraints.merged(touch_constraints(touch, grid))
-    return constraints
 
 
 def ideal_targets(
@@ -235,7 +226,7 @@ def refiner(run: ObjectRun, perception: LearnedPerception, update: str) -> Refin
     prior_request = run.request("active", "prior")
 
     def refine_prior(estimate: ShapeEstimate, touches: list[TouchResult]) -> ShapeEstimate:
-        constraints = merged_constraints(touches, run.grid)
+        constraints = constraints_from_touches(touches, run.grid)
         return perception.refine_with(estimate, constraints, prior_request)
 
     return refine_prior

@@ -51,11 +51,17 @@ from models.tactile.reconstruction import (
 from models.touch.constraints import (
     TouchResult,
     VoxelConstraints,
+    constraints_from_touches,
     free_pad_points,
     pad_grid_world,
-    touch_constraints,
 )
-from models.touch.fused import FusedShape, FusionSettings, Pose, posed_grid
+from models.touch.fused import (
+    FusedShape,
+    FusionSettings,
+    Pose,
+    SignedDistanceGrid,
+    posed_grid,
+)
 from models.touch.observations import SurfaceObservations, camera_observations, observations_of
 from models.touch.policy import (
     above_table_filter,
@@ -66,7 +72,7 @@ from models.touch.policy import (
     random_touch,
     touch_candidates,
 )
-from models.touch.refinement import direct_edit, refine_latent
+from models.touch.refinement import RefinementResult, direct_edit, refine_latent
 
 log = logging.getLogger(__name__)
 
@@ -308,30 +314,21 @@ class LearnedPerception:
         models = self.config.models
         base_grid = estimate.grid
         pose = estimate.fused.pose if estimate.fused is not None else Pose()
-        latent, prior_voxels = estimate.latent, estimate.vision_probabilities
+        latent = estimate.latent
         if models.fusion_refine_latent and estimate.latent is not None:
-            constraints = VoxelConstraints.none(base_grid.resolution)
-            for touch in touches:
-                constraints = constraints.merged(
-                    touch_constraints(touch, posed_grid(base_grid, pose))
-                )
-            result = refine_latent(
-                self.prior(estimate.prior or request.prior).decode,
-                torch.as_tensor(estimate.latent),
-                constraints,
-                learning_rate=models.refine_learning_rate,
-                iterations=models.refine_iterations_per_touch,
-                loss=models.refine_loss,
-                anchor_latent=torch.as_tensor(estimate.vision_latent),
-                anchor_weight=models.refine_anchor_weight,
-            )
-            latent, prior_voxels = result.latent, result.voxels.numpy()
+            constraints = constraints_from_touches(touches, posed_grid(base_grid, pose))
+            result = self._refine_latent(estimate, constraints, request)
+            latent = result.latent
+            prior = SignedDistanceGrid.from_probabilities(result.voxels.numpy(), base_grid)
+        elif estimate.fused is not None:
+            # The prior's shape is vision's, as at the last touch: its distance is computed.
+            prior = estimate.fused.prior.moved_to(base_grid)
+        else:
+            prior = SignedDistanceGrid.from_probabilities(estimate.vision_probabilities, base_grid)
         observations = SurfaceObservations.merged(
             [estimate.camera_observations, observations_of(touches)]
         )
-        fused = FusedShape.from_prior(
-            prior_voxels, base_grid, observations, self.fusion_settings, start_pose=pose
-        )
+        fused = FusedShape.from_distance(prior, observations, self.fusion_settings, pose)
         return replace(
             estimate,
             probabilities=self._fused_probabilities(fused, base_grid),
@@ -364,7 +361,23 @@ class LearnedPerception:
             probabilities = direct_edit(estimate.vision_probabilities, constraints)
             return replace(estimate, probabilities=probabilities)
         models = self.config.models
-        result = refine_latent(
+        result = self._refine_latent(estimate, constraints, request)
+        # The prior spreads the touches over the shape; what they measured is then written in,
+        # so the reported shape agrees with every contact and every free sweep.
+        probabilities = result.voxels.numpy().astype(np.float32)
+        if models.refine_write_measurements:
+            probabilities = direct_edit(probabilities, constraints)
+        return replace(estimate, probabilities=probabilities, latent=result.latent)
+
+    # --- helpers --------------------------------------------------------------------------------
+
+    def _refine_latent(
+        self, estimate: ShapeEstimate, constraints: VoxelConstraints, request: ExploreRequest
+    ) -> RefinementResult:
+        """The estimate's latent refined by the touch loss (``[models]`` settings), anchored to
+        the vision latent."""
+        models = self.config.models
+        return refine_latent(
             self.prior(estimate.prior or request.prior).decode,
             torch.as_tensor(estimate.latent),
             constraints,
@@ -376,22 +389,10 @@ class LearnedPerception:
             ),
             anchor_weight=models.refine_anchor_weight,
         )
-        # The prior spreads the touches over the shape; what they measured is then written in,
-        # so the reported shape agrees with every contact and every free sweep.
-        probabilities = result.voxels.numpy().astype(np.float32)
-        if models.refine_write_measurements:
-            probabilities = direct_edit(probabilities, constraints)
-        return replace(estimate, probabilities=probabilities, latent=result.latent)
-
-    # --- helpers --------------------------------------------------------------------------------
 
     def constraints(self, outcomes: list[TouchOutcome], grid: VoxelGrid) -> VoxelConstraints:
         """The voxel constraints of all touches so far in ``grid`` (the estimate's)."""
-        constraints = VoxelConstraints.none(grid.resolution)
-        for outcome in outcomes:
-            if outcome.touch is not None:
-                constraints = constraints.merged(touch_constraints(outcome.touch, grid))
-        return constraints
+        return constraints_from_touches([o.touch for o in outcomes if o.touch is not None], grid)
 
     def _reconstructor(self, measurement: TouchMeasurement) -> TactileReconstructor:
         """One reconstructor per reference frame (its set-up cost is paid once a session)."""

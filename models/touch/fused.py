@@ -426,12 +426,24 @@ class FusedShape:
     ) -> FusedShape:
         """Fuse ``observations`` into the prior's estimate (``probabilities`` on ``prior_grid``):
         pose fit first (when enabled), then the correction around the posed prior."""
-        observations = observations or SurfaceObservations.none()
         prior = SignedDistanceGrid.from_probabilities(probabilities, prior_grid)
+        return cls.from_distance(prior, observations, settings, start_pose)
+
+    @classmethod
+    def from_distance(
+        cls,
+        prior: SignedDistanceGrid,
+        observations: SurfaceObservations | None = None,
+        settings: FusionSettings = FusionSettings(),
+        start_pose: Pose = Pose(),
+    ) -> FusedShape:
+        """:meth:`from_prior` from the prior's distance already computed (on its unposed grid):
+        while the prior's shape stays the same, touches only refit the pose and correction."""
+        observations = observations or SurfaceObservations.none()
         pose = start_pose
         if settings.pose_fit and len(observations.surface_points_world):
-            pose = fit_pose(prior, prior_grid, observations, start_pose)
-        posed = prior.moved_to(posed_grid(prior_grid, pose))
+            pose = fit_pose(prior, prior.grid, observations, start_pose)
+        posed = prior.moved_to(posed_grid(prior.grid, pose))
         return cls(posed, fit_correction(posed, observations, settings), pose)
 
     def sdf(self, points_world: ArrayLike) -> FloatArray:

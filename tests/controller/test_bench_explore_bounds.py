@@ -19,7 +19,6 @@ from controller.benchmarks.explore_bounds import (
     ideal_targets,
     ideal_touch,
     ideal_touch_curve,
-    merged_constraints,
     refiner,
     run_bounds,
     summarise_bounds,
@@ -31,7 +30,7 @@ from models.geometry import make_transform
 from models.metrics import distance_to_mesh
 from models.prior.evaluation import EvalObject
 from models.prior.shape_prior import ShapePrior
-from models.touch.constraints import touch_constraints
+from models.touch.constraints import constraints_from_touches, touch_constraints
 
 RADIUS_M = 0.05
 CENTRE_M = np.array([0.0, 0.0, 0.06])
@@ -94,7 +93,9 @@ def test_the_ideal_oracle_keeps_the_best_candidate_each_touch(sphere, grid) -> N
     # A stand-in refinement and error: the more occupied voxels the touches so far proved, the
     # lower. The curve refines with every touch so far and scores through run.metrics.
     def error(estimate: SimpleNamespace) -> dict:
-        return {"chamfer_mm": 1000.0 / len(merged_constraints(estimate.touches, grid).occupied)}
+        return {
+            "chamfer_mm": 1000.0 / len(constraints_from_touches(estimate.touches, grid).occupied)
+        }
 
     run = SimpleNamespace(
         mesh_world=sphere, grid=grid, vision=None, vision_metrics={"chamfer_mm": 9.0}, metrics=error
@@ -106,9 +107,11 @@ def test_the_ideal_oracle_keeps_the_best_candidate_each_touch(sphere, grid) -> N
     curve, made, estimate = ideal_touch_curve(run, refine, PAD_M, 2, 3, seed=0)
     points, normals = ideal_targets(sphere, 6, seed=0)
     touches = [ideal_touch(sphere, p, n, PAD_M) for p, n in zip(points, normals, strict=True)]
-    first = max(touches[:3], key=lambda t: len(merged_constraints([t], grid).occupied))
-    second = max(touches[3:], key=lambda t: len(merged_constraints([first, t], grid).occupied))
-    best = [merged_constraints(made[: n + 1], grid) for n in range(2)]
+    first = max(touches[:3], key=lambda t: len(constraints_from_touches([t], grid).occupied))
+    second = max(
+        touches[3:], key=lambda t: len(constraints_from_touches([first, t], grid).occupied)
+    )
+    best = [constraints_from_touches(made[: n + 1], grid) for n in range(2)]
     assert curve == [9.0, 1000.0 / len(best[0].occupied), 1000.0 / len(best[1].occupied)]
     assert [t.contact_points_world.tolist() for t in made] == [
         t.contact_points_world.tolist() for t in (first, second)
