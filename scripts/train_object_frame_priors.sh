@@ -19,11 +19,14 @@ $TS data build --out $DATA --frame object --shapes-per-category 120 --views 6 --
 
 # 2. The sketch net (fitted and search crops) and the shape net (ground-truth sketches) side by
 #    side; the shape net is validated on ground-truth sketches (the sketch net is not ready).
+#    The learning rate is the paper's, then a tenth of it from the decay epochs on (the shape
+#    net's validation IoU stalled at 0.61 after epoch 4 at the constant rate).
 $TS train sketch --preset cpu --data $DATA --out $RUNS/sketch \
-    --epochs 40 --batch-size 16 --max-minutes "$MINUTES" --threads 1 --seed 0 &
+    --epochs 7 --lr-decay-epochs 5 --batch-size 16 --max-minutes "$MINUTES" --threads 1 --seed 0 &
 SKETCH=$!
 $TS train shape --preset cpu --data $DATA --out $RUNS/shape \
-    --epochs 40 --batch-size 16 --max-minutes "$MINUTES" --threads 1 --seed 0 &
+    --epochs 14 --lr-decay-epochs 7 11 --batch-size 16 --max-minutes "$MINUTES" --threads 1 \
+    --seed 0 &
 SHAPE=$!
 wait $SKETCH $SHAPE
 echo "trained: $RUNS/sketch/sketch.pt $RUNS/shape/shape.pt"

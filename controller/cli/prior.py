@@ -78,6 +78,14 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
         parser.add_argument("--batch-size", type=int, default=16)
         parser.add_argument("--lr", type=float, default=None, help="default: the paper's")
         parser.add_argument(
+            "--lr-decay-epochs",
+            type=int,
+            nargs="*",
+            default=[],
+            help="multiply the learning rate by --lr-decay-factor from each of these epochs on",
+        )
+        parser.add_argument("--lr-decay-factor", type=float, default=0.1)
+        parser.add_argument(
             "--max-minutes",
             type=float,
             default=None,
@@ -226,6 +234,8 @@ def train_network(args: argparse.Namespace) -> int:
         epochs=args.epochs,
         batch_size=args.batch_size,
         learning_rate=args.lr,
+        lr_decay_epochs=tuple(args.lr_decay_epochs),
+        lr_decay_factor=args.lr_decay_factor,
         max_minutes=args.max_minutes,
         seed=args.seed,
         init_weights=args.init,

@@ -76,9 +76,14 @@ def available_priors(weights_dir: str | Path | None = None) -> dict[str, list[Pr
     index = folder / "priors.json"
     if not index.exists():
         return {}
+    from models.prior.training import WeightsError
+
     priors: dict[str, list[PriorSpec]] = {}
-    for entry in json.loads(index.read_text())["priors"]:
-        priors.setdefault(entry["name"], []).append(PriorSpec(**entry))
+    try:
+        for entry in json.loads(index.read_text(encoding="utf-8"))["priors"]:
+            priors.setdefault(entry["name"], []).append(PriorSpec(**entry))
+    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as error:
+        raise WeightsError(f"{index}: not a valid priors index ({error!r})") from None
     return priors
 
 

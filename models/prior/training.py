@@ -9,7 +9,8 @@
   sketch checkpoint is given.
 
 Checkpoints (``checkpoint.pt``) are written every ``checkpoint_minutes`` and at the end; a run
-resumes from one mid-epoch (the epoch's sample order is a function of seed and epoch). Metrics go
+resumes from one mid-epoch, bit-exact: the epoch's sample order is a function of seed and epoch,
+a batch's random draws of seed and step, the learning rate of the epoch. Metrics go
 to ``metrics.jsonl``. With ``torchrun`` (``WORLD_SIZE`` > 1) it trains with
 DistributedDataParallel: NCCL on GPUs, gloo on CPU; each rank takes every WORLD_SIZE-th sample.
 """
@@ -57,6 +58,11 @@ class TrainConfig:
     batch_size: int = 16
     learning_rate: float | None = None
     """None: the paper's (sketch 5e-4 Adam, shape 2e-2 SGD)."""
+    lr_decay_epochs: tuple[int, ...] = ()
+    """Step decay: the learning rate is multiplied by ``lr_decay_factor`` from each of these
+    epochs on (the paper's constant rate when empty). A function of the epoch, so a resumed run
+    uses the same rate."""
+    lr_decay_factor: float = 0.1
     max_minutes: float | None = None
     """Stop (with a checkpoint) after this many minutes of training steps (data loading
     included, validation not); a resumed run counts on from its checkpoint."""
@@ -80,6 +86,12 @@ def paper_optimizer(stage: Stage, model: nn.Module, lr: float | None) -> torch.o
     if stage == "sketch":
         return torch.optim.Adam(model.parameters(), lr=lr or 5e-4, betas=(0.5, 0.9))
     return torch.optim.SGD(model.parameters(), lr=lr or 2e-2, momentum=0.9)
+
+
+def epoch_learning_rate(config: TrainConfig, epoch: int) -> float:
+    """The learning rate of an epoch under the step decay."""
+    base = config.learning_rate or (5e-4 if config.stage == "sketch" else 2e-2)
+    return base * config.lr_decay_factor ** sum(epoch >= e for e in config.lr_decay_epochs)
 
 
 def build_model(stage: Stage, preset: str) -> nn.Module:
@@ -161,11 +173,28 @@ def save_weights(model: nn.Module, stage: Stage, preset: str, path: str | Path) 
     write_atomically(Path(path), lambda temporary: torch.save(blob, temporary))
 
 
+class WeightsError(ValueError):
+    """A weights file is missing, corrupt or not the network's; the message names the file."""
+
+
 def load_weights(model: nn.Module, path: str | Path) -> dict:
-    """Load weights written by :func:`save_weights` (or a training checkpoint) into ``model``."""
-    blob = torch.load(path, map_location="cpu", weights_only=False)
-    state = blob["state_dict"] if "state_dict" in blob else blob["model"]
-    model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in state.items()})
+    """Load weights written by :func:`save_weights` (or a training checkpoint) into ``model``.
+
+    Raises:
+        WeightsError: the file is missing, unreadable, or holds another network's weights.
+    """
+    kind = type(model.module if hasattr(model, "module") else model).__name__
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=False)
+        state = blob["state_dict"] if "state_dict" in blob else blob["model"]
+        model.load_state_dict(
+            {k: v.float() if v.is_floating_point() else v for k, v in state.items()}
+        )
+    except FileNotFoundError:
+        raise WeightsError(f"{path}: missing ({kind} weights)") from None
+    except Exception as error:  # torch.load and load_state_dict raise many kinds
+        reason = str(error).strip().splitlines()[0][:200] if str(error).strip() else repr(error)
+        raise WeightsError(f"{path}: not valid {kind} weights ({reason})") from None
     return blob
 
 
@@ -270,7 +299,6 @@ def train(config: TrainConfig, *, progress: bool = True) -> dict:
             with metrics_file.open("a") as handle:
                 handle.write(json.dumps(record) + "\n")
 
-    sample_noise = torch.Generator().manual_seed(config.seed + 7)
     budget_s = None if config.max_minutes is None else 60.0 * config.max_minutes
     last_checkpoint = time.monotonic()
     validation: dict = {}
@@ -280,6 +308,8 @@ def train(config: TrainConfig, *, progress: bool = True) -> dict:
             len(train_idx), generator=torch.Generator().manual_seed(config.seed * 1000 + epoch)
         ).tolist()
         indices = [train_idx[i] for i in order][env.rank :: env.world]
+        for group in optimizer.param_groups:
+            group["lr"] = epoch_learning_rate(config, epoch)
         batches_per_epoch = len(indices) // config.batch_size
         model.train()
         bar = tqdm(
@@ -293,6 +323,11 @@ def train(config: TrainConfig, *, progress: bool = True) -> dict:
         tick = time.monotonic()
         for batch in _batches(dataset, indices[start_index:], config.batch_size):
             batch = {k: v.to(env.device) for k, v in batch.items()}
+            # The batch's randomness (jitter, sensor-depth draws) is a function of its step and
+            # the rank: a run resumed from a checkpoint trains bit-exact as one never stopped.
+            step_seed = (config.seed * 1_000_003 + step) * max(env.world, 1) + env.rank
+            torch.manual_seed(step_seed)
+            sample_noise = torch.Generator().manual_seed(step_seed)
             if config.stage == "sketch":
                 rgb = batch["rgb"].float() / 255.0
                 if augment is not None:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +22,7 @@ from models.prior.shape_prior import (
     ShapePrior,
     available_priors,
 )
-from models.prior.training import save_weights
+from models.prior.training import WeightsError, save_weights
 from models.prior.virtual_camera import crop_image, grid_crop
 from models.procedural import make_shape
 from models.render import Scene, render
@@ -102,6 +104,73 @@ def test_named_priors_load_and_unknown_names_list_the_available(tmp_path: Path) 
         ShapePrior.load("mugs", weights_dir=tmp_path)
     with pytest.raises(PriorNotFoundError, match="preset 'paper'"):
         ShapePrior.load("box", preset="paper", weights_dir=tmp_path)
+
+
+def _tiny_weights_folder(folder: Path) -> Path:
+    """A weights folder of one untrained prior, 'general'."""
+    folder.mkdir(parents=True, exist_ok=True)
+    prior = ShapePrior.untrained("cpu")
+    save_weights(prior.sketch_net, "sketch", "cpu", folder / "sketch.pt")
+    save_weights(prior.shape_net, "shape", "cpu", folder / "shape.pt")
+    entry = {"preset": "cpu", "sketch_weights": "sketch.pt", "shape_weights": "shape.pt"}
+    (folder / "priors.json").write_text(
+        json.dumps({"priors": [{"name": "general", "grid_extent_m": 0.26, **entry}]})
+    )
+    return folder
+
+
+@pytest.mark.parametrize(
+    ("damage", "message"),
+    [
+        ("truncate", "not valid ShapeNet weights"),
+        ("swap", "not valid ShapeNet weights"),  # the sketch net's weights in the shape file
+        ("delete", "missing"),
+    ],
+)
+def test_corrupt_weights_are_refused_naming_the_file(
+    tmp_path: Path, damage: str, message: str
+) -> None:
+    folder = _tiny_weights_folder(tmp_path / "weights")
+    shape = folder / "shape.pt"
+    if damage == "truncate":
+        shape.write_bytes(shape.read_bytes()[:5000])
+    elif damage == "swap":
+        shape.write_bytes((folder / "sketch.pt").read_bytes())
+    else:
+        shape.unlink()
+    with pytest.raises(WeightsError) as error:
+        ShapePrior.load("general", weights_dir=folder)
+    assert str(error.value).startswith(f"{shape}: {message}")
+
+
+def test_a_corrupt_priors_index_is_refused_naming_it(tmp_path: Path) -> None:
+    folder = _tiny_weights_folder(tmp_path / "weights")
+    (folder / "priors.json").write_text('{"priors": [{"name": ')
+    with pytest.raises(WeightsError, match=r"priors\.json: not a valid priors index"):
+        ShapePrior.load("general", weights_dir=folder)
+
+
+def test_the_service_refuses_corrupt_weights_at_start_up(tmp_path: Path) -> None:
+    """`touchshape explore` with a corrupt shape-net file: one line naming it, exit 2, before
+    any session."""
+    folder = _tiny_weights_folder(tmp_path / "weights")
+    (folder / "shape.pt").write_bytes(b"not a torch file")
+    config = tmp_path / "config.toml"
+    config.write_text(
+        f'[models]\nweights_dir = "{folder}"\n[logging]\ndir = "{tmp_path / "logs"}"\n'
+    )
+    touchshape = Path(sys.executable).with_name("touchshape")
+    run = subprocess.run(
+        [str(touchshape), "explore", "--config", str(config), "--touches", "1"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert run.returncode == 2, run.stdout + run.stderr
+    errors = run.stderr.strip().splitlines()
+    assert len(errors) == 1, run.stderr
+    assert errors[0].startswith(f"touchshape: error: {folder / 'shape.pt'}: not valid ShapeNet")
+    assert not list((tmp_path / "logs").glob("*/summary.json"))
 
 
 def test_shipped_priors_are_listed() -> None:

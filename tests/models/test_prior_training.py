@@ -16,6 +16,7 @@ from models.prior.dataset import BuildSpec, SketchVoxelDataset, ViewRecipe, buil
 from models.prior.networks import NetworkPreset, ShapeNet, SketchNet, normalise_rgb
 from models.prior.training import (
     TrainConfig,
+    epoch_learning_rate,
     ground_truth_shape_input,
     paper_optimizer,
     shape_loss,
@@ -119,6 +120,33 @@ def test_train_writes_metrics_weights_and_resumes(tiny_data: Path, tmp_path: Pat
     epochs = [r["epoch"] for r in records if "val_loss" in r]
     assert epochs == [1, 2]
     assert torch.load(tmp_path / "shape" / "checkpoint.pt", weights_only=False)["epoch"] == 2
+
+
+@pytest.mark.parametrize("stage", ["sketch", "shape"])
+def test_a_resumed_run_trains_bit_exact(tiny_data: Path, tmp_path: Path, stage: str) -> None:
+    """Stopped after its first batch and resumed from the checkpoint, a run ends with the same
+    weights as one never stopped: the next batch sees the same samples, jitter and noise."""
+    common = {"preset": "tiny", "epochs": 2, "batch_size": 2, "val_fraction": 0.3}
+    whole = TrainConfig(stage, str(tiny_data), str(tmp_path / "whole"), **common)
+    train(whole, progress=False)
+    parted = TrainConfig(stage, str(tiny_data), str(tmp_path / "parted"), **common)
+    train(TrainConfig(**{**parted.__dict__, "max_minutes": 1e-9}), progress=False)
+    stopped = torch.load(tmp_path / "parted" / "checkpoint.pt", weights_only=False)
+    assert (stopped["epoch"], stopped["batch_in_epoch"], stopped["step"]) == (0, 1, 1)
+    train(parted, progress=False)
+    ends = [
+        torch.load(tmp_path / run / "checkpoint.pt", weights_only=False)
+        for run in ("whole", "parted")
+    ]
+    assert ends[0]["step"] == ends[1]["step"] > 2
+    for name, tensor in ends[0]["model"].items():
+        assert torch.equal(tensor, ends[1]["model"][name]), name
+
+
+def test_the_learning_rate_decays_by_epoch() -> None:
+    config = TrainConfig("shape", "data", "out", lr_decay_epochs=(2, 4), lr_decay_factor=0.5)
+    rates = [epoch_learning_rate(config, epoch) for epoch in range(6)]
+    assert rates == pytest.approx([2e-2, 2e-2, 1e-2, 1e-2, 5e-3, 5e-3])
 
 
 def _ddp_worker(rank: int, port: int, data: str, out: str) -> None:
