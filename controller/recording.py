@@ -1,18 +1,19 @@
 """Session recording: one Rerun recording (logs/<session>.rrd) and a folder of artifacts
 (logs/<session>/) per exploration session. The one module that talks to Rerun.
 
-The viewer layout is one blueprint file, ``logs/touchshape.rbl``, written once per process
-(``rerun logs/touchshape.rbl logs/<session>.rrd``): Rerun 0.41 keeps every blueprint stream it
-makes for the life of the process (rerun-io/rerun#2116), so one per session grew a long-running
-service by ~1.5 MB a session. Each session's recording stream is destroyed when it is closed.
+The viewer layout is ``controller.recording_layout``'s blueprint file. Each session's recording
+stream is destroyed when it is closed.
 
-Entity paths mirror the frame tree (``world/kinect``, ``world/ur5/tcp``, ``world/ur5/pad``);
-timelines are ``touch`` (sequence) and ``time`` (wall clock).
+Entity paths mirror the frame tree (``world/kinect``, ``world/tcp``, ``world/pad``); the shape
+estimates are ``world/estimate/vision`` (touch 0) and ``world/estimate/current`` (each refine),
+the contact patches ``world/contacts/<touch>``, the scores ``metrics/...`` (one plot per
+quantity). One timeline, ``touch`` (sequence): a review steps through touches, and wall-clock
+time (Rerun's automatic ``log_time`` too) only adds a second, misleading axis.
 
 A crash loses nothing already measured: as each touch completes the recording is flushed to its
 file, then the touch is appended to ``touches.jsonl`` (flushed, fsynced), so a line there means
 the recording holds that touch. A killed session's folder has no ``summary.json`` and its .rrd
-no footer; ``recover_interrupted_sessions`` (run at service start-up) writes the summary with
+no footer; ``controller.recording_recovery`` (run at service start-up) writes the summary with
 ``state: "interrupted"`` and rewrites the .rrd with a footer.
 """
 
@@ -22,25 +23,32 @@ import fcntl
 import json
 import logging
 import os
-import subprocess
-import threading
-import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+import matplotlib
 import numpy as np
 import rerun as rr
-import rerun.blueprint as rrb
 import rerun_bindings
 import rerun_cli
 import trimesh
 from numpy.typing import NDArray
-from rerun.chunk import RrdReader
 
+from controller.recording_layout import (
+    LEGEND,
+    OBJECT_FRAME,
+    STD_COLORMAP,
+    STD_RANGE_MM,
+    save_blueprint,
+)
 from drivers.base import RGBDFrame
 from models.files import write_json_atomically
 from models.geometry import VoxelGrid
+from models.touch.constraints import TouchResult
 from models.touch.observations import SurfaceObservations
+
+if TYPE_CHECKING:
+    from controller.perception.protocol import ShapeEstimate
 
 log = logging.getLogger(__name__)
 
@@ -52,36 +60,40 @@ def _confidence_colours(probabilities: NDArray[np.floating]) -> NDArray[np.uint8
     return (colours * 255).astype(np.uint8)
 
 
-def _blueprint() -> rrb.Blueprint:
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Spatial3DView(name="world", origin="world"),
-            rrb.Vertical(
-                rrb.Spatial2DView(name="kinect", origin="world/kinect"),
-                rrb.Spatial2DView(name="gelsight", origin="gelsight"),
-                rrb.TimeSeriesView(name="metrics", origin="metrics"),
-                rrb.TextLogView(name="log", origin="log"),
-            ),
-            column_shares=[3, 2],
-        ),
-        collapse_panels=True,
-    )
+PLAIN_ESTIMATE_COLOUR = (120, 170, 230)
+"""An estimate without a std (the latent or Direct Edit update)."""
+PATCH_ARROWS = 12
+"""Normals drawn per contact patch: enough to show its orientation, few enough to read."""
+PATCH_ARROW_M = 0.005
+CAMERA_IMAGE_PLANE_M = 0.1
+"""The camera's frustum and image in 3D: small, so they do not hide the object ~0.7 m off."""
 
+ESTIMATE_KINDS = ("vision", "current")
 
-BLUEPRINT_FILE = "touchshape.rbl"
+# Metric names (controller.scoring, the session) -> entity path and series name: the F-scores
+# share a plot, every other quantity has its own (their scales differ by orders of magnitude).
+_METRICS = {
+    "chamfer_mm": ("metrics/chamfer_mm", "chamfer (mm)"),
+    "fscore_2mm": ("metrics/fscore/2mm", "F @2 mm"),
+    "fscore_5mm": ("metrics/fscore/5mm", "F @5 mm"),
+    "voxels_flipped": ("metrics/voxels_flipped", "voxels flipped"),
+}
+_METRIC_COLOURS = {
+    "chamfer_mm": (230, 120, 40),
+    "fscore_2mm": (70, 160, 230),
+    "fscore_5mm": (150, 90, 220),
+    "voxels_flipped": (120, 190, 90),
+}
+
 REQUEST_FILE = "request.json"
-_blueprints_written: set[Path] = set()
-_blueprints_lock = threading.Lock()
 
 
-def save_blueprint(logs_dir: Path) -> Path:
-    """The viewer layout in ``logs_dir`` (written once per process and folder)."""
-    path = (logs_dir / BLUEPRINT_FILE).resolve()
-    with _blueprints_lock:
-        if path not in _blueprints_written or not path.exists():
-            _blueprint().save("touchshape", str(path))
-            _blueprints_written.add(path)
-    return path
+def std_colours(std_m: NDArray[np.floating]) -> NDArray[np.uint8]:
+    """RGB per value of a posterior std (metres) on the ``STD_COLORMAP`` over ``STD_RANGE_MM``."""
+    low, high = STD_RANGE_MM
+    scaled = (np.asarray(std_m, dtype=float) * 1000.0 - low) / (high - low)
+    rgba = matplotlib.colormaps[STD_COLORMAP](np.clip(scaled, 0.0, 1.0))
+    return (rgba[..., :3] * 255).astype(np.uint8)
 
 
 class SessionRecorder:
@@ -103,7 +115,9 @@ class SessionRecorder:
             "touchshape", recording_id=session_id
         )
         self._rec.save(str(self.rrd_path))
+        self._rec.set_log_time_enabled(False)  # the one timeline is ``touch``
         self._touch = 0
+        self._log_styles()
         self._touches_file = self.touches_path.open("a", encoding="utf-8")
         # Held while the session records (the kernel drops it when the process dies): start-up
         # recovery leaves a session alone that another process is still recording.
@@ -118,7 +132,6 @@ class SessionRecorder:
         if self._rec is None:
             return
         self._rec.set_time("touch", sequence=self._touch if touch is None else touch)
-        self._rec.set_time("time", timestamp=time.time())
 
     def _log(self, *args: Any, **kwargs: Any) -> None:
         if self._rec is not None:  # after close() nothing is recorded
@@ -126,6 +139,19 @@ class SessionRecorder:
 
     def set_touch(self, touch_index: int) -> None:
         self._touch = touch_index
+
+    def _log_styles(self) -> None:
+        """Series names and colours (lines with markers: touch 0 alone is a single point) and
+        the layout's legend, static."""
+        for name, (path, label) in _METRICS.items():
+            colour = _METRIC_COLOURS[name]
+            self._log(
+                path,
+                rr.SeriesLines(names=label, colors=colour, widths=2),
+                rr.SeriesPoints(names=label, colors=colour, markers="circle", marker_sizes=3),
+                static=True,
+            )
+        self._log("legend", rr.TextDocument(LEGEND, media_type="text/markdown"), static=True)
 
     # --- static calibration ---------------------------------------------------------------------
 
@@ -137,6 +163,14 @@ class SessionRecorder:
     ) -> None:
         """Robot base, voxel grid bounds and (simulation only) the ground-truth object."""
         self._log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        # The frame the layout's 3D views look from (``controller.recording_layout``).
+        self._log(
+            OBJECT_FRAME,
+            rr.Transform3D(
+                translation=grid.origin_world, mat3x3=np.asarray(grid.axes_world, dtype=float).T
+            ),
+            static=True,
+        )
         self._log(
             "world/ur5",
             rr.Transform3D(translation=pose_world_base[:3, 3], mat3x3=pose_world_base[:3, :3]),
@@ -149,6 +183,7 @@ class SessionRecorder:
                 mins=[corners.min(axis=0)],
                 sizes=[np.abs(corners[1] - corners[0])],
                 colors=[(120, 120, 120)],
+                fill_mode="majorwireframe",
             ),
             static=True,
         )
@@ -183,6 +218,7 @@ class SessionRecorder:
                 principal_point=(k.cx, k.cy),
                 width=k.width,
                 height=k.height,
+                image_plane_distance=CAMERA_IMAGE_PLANE_M,
             ),
         )
         self._log("world/kinect/rgb", rr.Image(frame.colour_rgb))
@@ -203,6 +239,75 @@ class SessionRecorder:
         self._log(
             "world/shape",
             rr.Points3D(points, colors=colours, radii=grid.voxel_size_m / 2),
+        )
+
+    def log_estimate(self, estimate: ShapeEstimate, *, vision: bool) -> None:
+        """An estimate: its sketches (none: nothing logged), voxels and surface, coloured by the
+        fused shape's std; ``vision``: the first, also kept as the vision estimate."""
+        self.log_sketches(estimate.sketches)
+        self.log_shape(estimate.probabilities, estimate.grid)
+        mesh = estimate.surface_mesh()
+        std = None if estimate.fused is None else estimate.fused.std(mesh.vertices)
+        for kind in ESTIMATE_KINDS if vision else ("current",):
+            self.log_estimate_mesh(kind, mesh, std)
+
+    def log_estimate_mesh(
+        self, kind: str, mesh: trimesh.Trimesh, vertex_std_m: NDArray[np.floating] | None = None
+    ) -> None:
+        """A shape estimate's surface (world metres, ``ShapeEstimate.surface_mesh``) as
+        ``world/estimate/<kind>``: ``vision`` (touch 0) or ``current`` (each refine). With the
+        fused shape's posterior std at its vertices, coloured by it (``STD_RANGE_MM``)."""
+        if kind not in ESTIMATE_KINDS:
+            raise ValueError(f"estimate kind {kind!r} is not one of {ESTIMATE_KINDS}")
+        self._now()
+        path = f"world/estimate/{kind}"
+        if len(mesh.faces) == 0:  # nothing extracted: do not leave an older surface showing
+            self._log(path, rr.Clear(recursive=False))
+            return
+        colours = None if vertex_std_m is None else std_colours(vertex_std_m)
+        self._log(
+            path,
+            rr.Mesh3D(
+                vertex_positions=np.asarray(mesh.vertices, dtype=np.float32),
+                triangle_indices=np.asarray(mesh.faces, dtype=np.uint32),
+                vertex_normals=np.asarray(mesh.vertex_normals, dtype=np.float32),
+                vertex_colors=colours,
+                albedo_factor=PLAIN_ESTIMATE_COLOUR if colours is None else None,
+            ),
+        )
+
+    def log_contact_patch(
+        self, points_world: NDArray[np.floating], normals_world: NDArray[np.floating]
+    ) -> None:
+        """A touch's contact patch as ``world/contacts/<touch>`` (kept for every touch, so the
+        current estimate shows all it was fitted to): its points and, for a few dozen of them,
+        short arrows along the outward normals."""
+        points = np.asarray(points_world, dtype=np.float32).reshape(-1, 3)
+        normals = np.asarray(normals_world, dtype=np.float32).reshape(-1, 3)
+        if len(points) == 0:
+            return
+        self._now()
+        path = f"world/contacts/{self._touch:03d}"
+        self._log(f"{path}/points", rr.Points3D(points, colors=(255, 150, 0), radii=0.0006))
+        arrows = np.linspace(0, len(points) - 1, min(PATCH_ARROWS, len(points))).astype(int)
+        self._log(
+            f"{path}/normals",
+            rr.Arrows3D(
+                origins=points[arrows],
+                vectors=PATCH_ARROW_M * normals[arrows],
+                colors=(0, 200, 230),
+                radii=0.0003,
+            ),
+        )
+
+    def log_touch_patch(self, touch: TouchResult | None) -> None:
+        """``log_contact_patch`` of a touch's thinned contact points and their normals, as the
+        fused update sees them (``SurfaceObservations.from_touch``); nothing for a miss."""
+        if touch is None or touch.is_miss:
+            return
+        observations = SurfaceObservations.from_touch(touch)
+        self.log_contact_patch(
+            observations.surface_points_world, observations.surface_normals_world
         )
 
     def log_robot(
@@ -258,7 +363,8 @@ class SessionRecorder:
         """A scalar on the ``touch`` timeline (the current touch unless given: a score computed
         in the background belongs to the estimate it scored)."""
         self._now(touch)
-        self._log(f"metrics/{name}", rr.Scalars(value))
+        path = _METRICS[name][0] if name in _METRICS else f"metrics/{name}"
+        self._log(path, rr.Scalars(value))
 
     # --- artifacts ------------------------------------------------------------------------------
 
@@ -298,133 +404,7 @@ class SessionRecorder:
         rerun_bindings.flush_and_cleanup_orphaned_recordings()
 
 
-# --- sessions a crash ended -------------------------------------------------------------------
-
-INTERRUPTED = "interrupted"
-REWRITE_TIMEOUT_S = 300.0
-
-
-def recover_interrupted_sessions(logs_dir: Path) -> list[dict[str, Any]]:
-    """Give every session in ``logs_dir`` that a crash left without ``summary.json`` one, with
-    ``state: "interrupted"`` and the touches ``touches.jsonl`` lists, and rewrite its recording
-    with a footer. Sessions another process is still recording are left alone. Returns the
-    summaries written."""
-    if not logs_dir.is_dir():
-        return []
-    summaries = []
-    for folder in sorted(logs_dir.iterdir()):
-        touches_path = folder / "touches.jsonl"
-        if not touches_path.is_file() or (folder / "summary.json").exists():
-            continue
-        try:
-            with touches_path.open("rb") as touches_file:
-                try:
-                    fcntl.flock(touches_file, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                except BlockingIOError:
-                    log.info("session %s is being recorded by a running process", folder)
-                    continue
-                summaries.append(_summarise_interrupted(folder, touches_file.read()))
-        except OSError as error:  # an unreadable folder must not keep the service from starting
-            log.warning("session %s: could not write its interrupted summary: %s", folder, error)
-    return summaries
-
-
-def _summarise_interrupted(folder: Path, touches_jsonl: bytes) -> dict[str, Any]:
-    touches, skipped = _read_touches(folder / "touches.jsonl", touches_jsonl)
-    rrd_path = folder.with_name(f"{folder.name}.rrd")
-    summary = {
-        "session": folder.name,
-        "state": INTERRUPTED,
-        "touches": len(touches),
-        "contacts": sum(bool(touch.get("contact")) for touch in touches),
-        "error": "the service ended without closing the session (killed or crashed); "
-        "found at the next start-up",
-        "request": _read_request(folder / REQUEST_FILE),
-        "recovery": {
-            "recording": _add_footer(rrd_path, folder.name),
-            "skipped_touch_lines": skipped,
-        },
-        "artifacts": {
-            "recording": str(rrd_path),
-            "touches": str(folder / "touches.jsonl"),
-            "summary": str(folder / "summary.json"),
-        },
-    }
-    write_json_atomically(folder / "summary.json", summary)
-    log.warning(
-        "session %s was interrupted: %s written (%d touches)",
-        folder.name,
-        folder / "summary.json",
-        len(touches),
-    )
-    return summary
-
-
-def _read_touches(path: Path, text: bytes) -> tuple[list[dict[str, Any]], list[int]]:
-    """The touch records in ``touches.jsonl``, and the numbers of the lines that are not one
-    (the last line a kill cut short): skipped with a warning, the rest kept."""
-    touches, skipped = [], []
-    for number, line in enumerate(text.splitlines(), start=1):
-        try:
-            record = json.loads(line)
-        except (UnicodeDecodeError, json.JSONDecodeError):
-            record = None
-        if isinstance(record, dict) and isinstance(record.get("touch"), int):
-            touches.append(record)
-        else:
-            skipped.append(number)
-            log.warning("%s line %d: not a complete touch record, skipped", path, number)
-    return touches, skipped
-
-
-def _read_request(path: Path) -> dict[str, Any] | None:
-    try:
-        request = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        return None
-    return request if isinstance(request, dict) else None
-
-
-def _add_footer(rrd_path: Path, recording_id: str) -> str:
-    """Rewrite a recording a kill left without its footer (its last message maybe cut short)
-    with Rerun's own ``rerun rrd merge``, then put it in place in one rename. The original stays
-    when the rewrite fails: ``merge`` refuses a file with an undecodable message in it, and
-    drops only a last message that ends early. Returns what was done."""
-    if not rrd_path.is_file():
-        return "missing"
-    rewritten = rrd_path.with_name(f".{rrd_path.name}.rewrite.rrd")
-    # The binary itself: `python -m rerun_cli` exits 0 whatever the command returns.
-    command = [str(Path(rerun_cli.__file__).with_name("rerun")), "rrd", "merge", str(rrd_path)]
-    try:
-        merged = subprocess.run(
-            [*command, "-o", str(rewritten)],
-            capture_output=True,
-            text=True,
-            timeout=REWRITE_TIMEOUT_S,
-        )
-        if merged.returncode != 0:
-            reason = (merged.stderr.strip().splitlines() or ["failed"])[-1]
-        elif not _holds_recording(rewritten, recording_id):
-            reason = f"the rewrite holds no recording {recording_id}"
-        else:
-            os.replace(rewritten, rrd_path)
-            return "rewritten with a footer"
-    except subprocess.TimeoutExpired:
-        reason = f"took over {REWRITE_TIMEOUT_S:.0f} s"
-    finally:
-        rewritten.unlink(missing_ok=True)
-    log.warning("%s: kept as written, without a footer: rerun rrd merge: %s", rrd_path, reason)
-    return f"kept as written, without a footer (rerun rrd merge: {reason})"
-
-
-def _holds_recording(rrd_path: Path, recording_id: str) -> bool:
-    """Whether the file has a footer and the session's recording (``rerun rrd merge`` turns an
-    empty or header-only file into a valid file without any recording)."""
-    try:
-        reader = RrdReader(rrd_path)
-        return any(
-            entry.recording_id == recording_id and len(reader.store(store=entry)) > 0
-            for entry in reader.recordings()
-        )
-    except (OSError, RuntimeError, ValueError):
-        return False
+def rerun_binary() -> Path:
+    """The ``rerun`` binary the rerun-sdk wheel ships, beside ``rerun_cli``: the binary itself,
+    as ``python -m rerun_cli`` exits 0 whatever the command returns."""
+    return Path(rerun_cli.__file__).with_name("rerun")

@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import trimesh
 
 from controller.perception.protocol import ShapeEstimate
 from controller.recording import SessionRecorder
-from models.metrics import SurfaceMetrics, surfaces_metrics
+from models.metrics import surfaces_metrics
 
 if TYPE_CHECKING:
     from drivers.sim.world import SimWorld
@@ -27,9 +28,16 @@ class GroundTruthScores:
     """Scores every estimate against the simulated object in the background (no work a real
     robot would wait for); ``collect`` lists them in estimate order."""
 
-    def __init__(self, world: SimWorld, recorder: SessionRecorder) -> None:
+    def __init__(
+        self,
+        world: SimWorld,
+        recorder: SessionRecorder,
+        on_score: Callable[[int, dict[str, float]], None] = lambda touch, scores: None,
+    ) -> None:
+        """``on_score(touch, scores)`` is called on the event loop as each score is ready."""
         self.world = world
         self.recorder = recorder
+        self.on_score = on_score
         self._tasks: list[asyncio.Task[dict[str, float]]] = []
 
     def add(self, estimate: ShapeEstimate, touch: int) -> None:
@@ -39,10 +47,13 @@ class GroundTruthScores:
     async def _score(
         self, estimate: ShapeEstimate, mesh: trimesh.Trimesh, touch: int
     ) -> dict[str, float]:
-        scores = await asyncio.to_thread(_scores, estimate, mesh)
-        values = {name: float(getattr(scores, name)) for name in SCORES}
+        values = await asyncio.to_thread(score_estimate, estimate, mesh)
         for name, value in values.items():
             self.recorder.log_metric(name, value, touch=touch)
+        try:
+            self.on_score(touch, values)
+        except Exception:  # a listener's failure must not lose the score
+            log.exception("publishing the score of touch %d failed", touch)
         return values
 
     async def collect(self) -> dict[str, list[float]]:
@@ -59,7 +70,8 @@ class GroundTruthScores:
         return metrics
 
 
-def _scores(estimate: ShapeEstimate, true_mesh_world: trimesh.Trimesh) -> SurfaceMetrics:
-    """The estimate's surface (``ShapeEstimate.surface_mesh``: every update through the same
-    extraction) against the truth."""
-    return surfaces_metrics(estimate.surface_mesh(), true_mesh_world)
+def score_estimate(estimate: ShapeEstimate, true_mesh_world: trimesh.Trimesh) -> dict[str, float]:
+    """``SCORES`` of the estimate's surface (``ShapeEstimate.surface_mesh``: every update
+    through the same extraction) against the truth."""
+    scores = surfaces_metrics(estimate.surface_mesh(), true_mesh_world)
+    return {name: float(getattr(scores, name)) for name in SCORES}

@@ -15,6 +15,7 @@ import time
 import uuid
 import zlib
 from collections.abc import Callable
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -25,12 +26,20 @@ from controller.config import Config
 from controller.messaging import ServiceApi, open_session
 from controller.motion.safety import Obstacles
 from controller.perception.protocol import Perception, ShapeEstimate
-from controller.recording import SessionRecorder, recover_interrupted_sessions
+from controller.recording import SessionRecorder
+from controller.recording_recovery import recover_interrupted_sessions
 from controller.request import ExploreRequest, RequestError, parse_explore_request
 from controller.session import ExplorationSession
+from controller.session_files import (
+    SESSION_LOG_FILE,
+    attach_session_log,
+    detach_session_log,
+    save_artifacts,
+    save_config,
+    save_truth,
+)
 from controller.states import State
 from drivers.factory import Devices, make_devices
-from models.touch.observations import SurfaceObservations, observations_of
 
 log = logging.getLogger(__name__)
 
@@ -70,8 +79,12 @@ class TouchshapeService:
         *,
         logs_dir: Path | None = None,
         rng_seed: int = 0,
+        on_publish: Callable[[str, dict[str, Any]], None] | None = None,
     ) -> None:
+        """``on_publish(name, body)`` sees every publication, with or without Zenoh (from the
+        event loop or a worker thread): ``touchshape explore`` prints its progress from them."""
         self.config = config
+        self.on_publish = on_publish
         self.perception_factory = perception_factory
         self.logs_dir = Path(logs_dir or config.logging.dir)
         self.rng_seed = rng_seed
@@ -168,9 +181,11 @@ class TouchshapeService:
             assert self.session is not None
             raise RuntimeError(f"busy: session {self.session.session_id} is running")
         assert self.devices is not None and self.perception is not None
-        session_id = time.strftime("%Y%m%d-%H%M%S-") + uuid.uuid4().hex[:6]
+        started = time.time()
+        session_id = time.strftime("%Y%m%d-%H%M%S-", time.localtime(started)) + uuid.uuid4().hex[:6]
         self.logs_dir.mkdir(parents=True, exist_ok=True)
         recorder = SessionRecorder(self.logs_dir, session_id, request.__dict__)
+        session_log = attach_session_log(recorder.artifacts_dir / SESSION_LOG_FILE)
         world = self.devices.world
         session = ExplorationSession(
             session_id=session_id,
@@ -193,51 +208,65 @@ class TouchshapeService:
         self.session = session
         self._abort = asyncio.Event()
         self._session_task = asyncio.create_task(
-            self._run_session(session, recorder), name=f"session-{session_id}"
+            self._run_session(session, recorder, session_log, started),
+            name=f"session-{session_id}",
         )
         return session_id
 
     async def _run_session(
-        self, session: ExplorationSession, recorder: SessionRecorder
+        self,
+        session: ExplorationSession,
+        recorder: SessionRecorder,
+        session_log: logging.Handler,
+        started: float,
     ) -> dict[str, Any]:
         try:
-            summary = await session.run(self._abort)
-            self._last_done = summary["state"] == str(State.DONE)
-            if session.estimate is not None or session.bound is not None:
-                self._last_obstacles = session.obstacles()
-            # Compressing the voxels, meshing and writing them, and flushing the recording take
-            # tens of milliseconds or more: worker threads' time, not the event loop's.
-            summary["artifacts"] = await asyncio.to_thread(self._save_artifacts, session, recorder)
+            try:
+                await asyncio.to_thread(self._save_inputs, recorder.artifacts_dir)
+                summary = await session.run(self._abort)
+                summary["started"] = _iso_time(started)
+                if self.devices is not None and self.devices.world is not None:
+                    summary["object"] = self.config.sim.object
+                self._last_done = summary["state"] == str(State.DONE)
+                if session.estimate is not None or session.bound is not None:
+                    self._last_obstacles = session.obstacles()
+                # Compressing the voxels, meshing and writing them, and flushing the recording
+                # take tens of milliseconds or more: worker threads' time, not the event loop's.
+                summary["artifacts"] = await asyncio.to_thread(
+                    self._save_artifacts, session, recorder
+                )
+            finally:
+                await asyncio.to_thread(recorder.close)
+            saved = await asyncio.to_thread(recorder.save_summary, summary)
+            summary["artifacts"]["summary"] = str(saved)
+            session.finish()
+            self.results.append(summary)
+            self._publish("result", summary)
+            return summary
         finally:
-            await asyncio.to_thread(recorder.close)
-        saved = await asyncio.to_thread(recorder.save_summary, summary)
-        summary["artifacts"]["summary"] = str(saved)
-        session.finish()
-        self.results.append(summary)
-        self._publish("result", summary)
-        return summary
+            detach_session_log(session_log)
+
+    def _save_inputs(self, folder: Path) -> None:
+        """What a replay needs besides the sensors' data: the effective config and, on the
+        simulated bench, the true object."""
+        save_config(folder, self.config)
+        world = self.devices.world if self.devices is not None else None
+        if world is not None:
+            save_truth(folder, world.object_mesh_world)
 
     def _save_artifacts(
         self, session: ExplorationSession, recorder: SessionRecorder
     ) -> dict[str, str]:
-        artifacts = {
-            "recording": str(recorder.rrd_path),
-            "blueprint": str(recorder.blueprint_path),
-            "touches": str(recorder.touches_path),
-        }
-        touches = observations_of([o.touch for o in session.outcomes if o.touch is not None])
-        camera = (
-            session.estimate.camera_observations
-            if session.estimate is not None
-            else SurfaceObservations.none()
+        world = self.devices.world if self.devices is not None else None
+        return save_artifacts(
+            recorder,
+            session.estimate,
+            session.vision_estimate,
+            session.outcomes,
+            session.outcome_touches,
+            session.touch_count,
+            world.object_mesh_world if world is not None else None,
         )
-        observations = SurfaceObservations.merged([camera, touches])
-        artifacts["observations"] = str(recorder.save_observations(observations))
-        if session.estimate is not None:
-            estimate = session.estimate
-            artifacts["voxels"] = str(recorder.save_voxels(estimate.probabilities, estimate.grid))
-            artifacts["mesh"] = str(recorder.save_mesh(estimate.surface_mesh()))
-        return artifacts
 
     async def wait_session(self) -> dict[str, Any] | None:
         if self._session_task is None:
@@ -292,5 +321,11 @@ class TouchshapeService:
         }
 
     def _publish(self, name: str, body: dict[str, Any]) -> None:
+        if self.on_publish is not None:
+            self.on_publish(name, body)
         if self.api is not None:
             self.api.publish_json(name, body)
+
+
+def _iso_time(seconds: float) -> str:
+    return datetime.fromtimestamp(seconds, tz=UTC).isoformat(timespec="seconds")

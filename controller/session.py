@@ -36,6 +36,13 @@ from controller.perception.protocol import (
 from controller.recording import SessionRecorder
 from controller.request import ExploreRequest
 from controller.scoring import GroundTruthScores
+from controller.session_files import (
+    GELSIGHT_REFERENCE_FILE,
+    outcome_record,
+    save_camera_frame,
+    save_tactile_frame,
+    touch_inputs_record,
+)
 from controller.session_times import SessionTimes
 from controller.states import STEP_TIMEOUT_S, TRANSITIONS, State
 from controller.targets import onto_measured, pad_paths_meet, repeat_reason
@@ -104,13 +111,27 @@ class ExplorationSession:
         self.state = State.IDLE
         self.touch_count = 0
         self.estimate: ShapeEstimate | None = None
+        self.vision_estimate: ShapeEstimate | None = None
+        """The estimate from the camera alone, before any touch."""
         self.outcomes: list[TouchOutcome] = []
+        self.outcome_touches: list[int] = []
+        """The touch number of each outcome (a refused touch has none)."""
         world = devices.world
         self.times = SessionTimes(sim_clock=None if world is None else (lambda: world.clock.now_s))
         self.error: str | None = None
         self.metrics: dict[str, list[float]] = {}
         """Ground-truth scores after reconstruct and each refine (simulation only)."""
-        self._scores = None if world is None else GroundTruthScores(world, recorder)
+        self._scores = (
+            None
+            if world is None
+            else GroundTruthScores(
+                world,
+                recorder,
+                lambda touch, scores: publish(
+                    "score", {"session": session_id, "touch": touch, **scores}
+                ),
+            )
+        )
         self.motion = MotionExecutor(
             devices=devices,
             config=config,
@@ -231,7 +252,12 @@ class ExplorationSession:
             )
         self._reference = await device(devices.tactile.reference())
         self._frame = await device(devices.camera.read())
-        await self._record(partial(self.recorder.log_camera, self._frame))
+        folder = self.recorder.artifacts_dir
+        await self._record(
+            partial(self.recorder.log_camera, self._frame),
+            partial(save_camera_frame, folder, self._frame),
+            partial(save_tactile_frame, folder, GELSIGHT_REFERENCE_FILE, self._reference),
+        )
         if np.any(self._frame.depth_m > 0):
             self.measured = await self._compute(
                 ObjectBound.from_depth,
@@ -249,6 +275,7 @@ class ExplorationSession:
 
     async def _reconstruct(self) -> State:
         self.estimate = await self._compute(self.perception.reconstruct, self._frame, self.request)
+        self.vision_estimate = self.estimate
         if self.measured is None:  # no depth: the object-fitted cube is where it may be
             object_point = self.config.voxel_grid.object_point_world
             self.measured = ObjectBound.from_box(self.estimate.grid, object_point)
@@ -409,6 +436,11 @@ class ExplorationSession:
             pad_start_world=self._touch.pad_start_world,
             force_n=gripper.force_n,
         )
+        # The raw inputs first: a touch a replay can re-interpret, whatever becomes of it here.
+        number = self.touch_count + 1
+        inputs = touch_inputs_record(self.session_id, number, measurement, gripper.width_m)
+        folder = self.recorder.artifacts_dir
+        await self._record(partial(save_tactile_frame, folder, inputs["gelsight_image"], tactile))
         try:
             outcome = await self._compute(self.perception.interpret, measurement)
         except HeightMapError as error:
@@ -416,6 +448,9 @@ class ExplorationSession:
             self.touch_count += 1
             self.recorder.set_touch(self.touch_count)
             log.error("touch %d refused: %s; going on without it", self.touch_count, error)
+            await self._record(
+                partial(self.recorder.log_touch, {**inputs, "refused": str(error)}, None)
+            )
             self.publish(
                 "touch",
                 {
@@ -429,6 +464,7 @@ class ExplorationSession:
                 return self._stop("the touch budget is spent")
             return State.SELECT
         self.outcomes.append(outcome)
+        self.outcome_touches.append(number)
         if outcome.touch is not None and self.measured is not None:
             # What the gel swept through without meeting anything is free.
             free = touch_constraints(outcome.touch, self.measured.grid).empty_ijk()
@@ -436,24 +472,10 @@ class ExplorationSession:
             await self._add_estimate_to_bound()
         self.touch_count += 1
         self.recorder.set_touch(self.touch_count)
-        record = {
-            "session": self.session_id,
-            "touch": self.touch_count,
-            "target_world": self._target.target_world.tolist(),
-            "direction_world": self._target.direction_world.tolist(),
-            "contact": contact,
-            "contact_point_world": (
-                None
-                if outcome.contact_point_world is None
-                else outcome.contact_point_world.tolist()
-            ),
-            "contact_points": len(outcome.contact_points_world),
-            "force_n": gripper.force_n,
-            "pad_start_world": self._touch.pad_start_world.tolist(),
-            "pose_world_pad": pose_world_pad.tolist(),
-        }
+        record = {**inputs, **outcome_record(outcome)}
         await self._record(
             partial(self.recorder.log_tactile, tactile.image_bgr, outcome.height_map_mm),
+            partial(self.recorder.log_touch_patch, outcome.touch),
             partial(self.recorder.log_touch, record, _rays(self._touch, outcome)),
         )
         self.publish("touch", record)
@@ -517,9 +539,9 @@ class ExplorationSession:
         estimate = self.estimate
         assert estimate is not None
         await self._record(
-            partial(self.recorder.log_sketches, estimate.sketches),  # none: nothing logged
-            partial(self.recorder.log_shape, estimate.probabilities, estimate.grid),
             partial(self.publish_shape, estimate),
+            # The surface takes ~1 s (marching cubes at 1.5 mm): after the publish.
+            partial(self.recorder.log_estimate, estimate, vision=self.touch_count == 0),
         )
         if self._scores is not None:
             self._scores.add(estimate, self.touch_count)

@@ -58,6 +58,20 @@ class RGBDFrame:
     silhouette: NDArray[np.bool_] | None = None
 
 
+def depth_mm_from_m(depth_m: NDArray[np.floating]) -> NDArray[np.uint16]:
+    """Depth in whole millimetres (0 = no return), as RGB-D sensors deliver it and the session
+    files store it (16-bit PNG)."""
+    return np.clip(np.round(np.asarray(depth_m, dtype=np.float64) * 1000.0), 0, 65535).astype(
+        np.uint16
+    )
+
+
+def depth_m_from_mm(depth_mm: NDArray[np.integer]) -> NDArray[np.float32]:
+    """Metres from whole millimetres: the one conversion every camera driver and the session
+    reader use, so a recorded frame reads back bit-exact."""
+    return np.asarray(depth_mm).astype(np.float32) * np.float32(1e-3)
+
+
 @dataclass(frozen=True)
 class TactileFrame:
     """One raw GelSight image (BGR, as OpenCV and the real sensor give it)."""

@@ -1,4 +1,5 @@
-"""`touchshape explore`: one exploration session run locally (no Zenoh), and its summary."""
+"""`touchshape explore`: one exploration session run locally (no Zenoh): a line per touch, then
+its summary; log records go to the session's ``session.log`` (and stderr with ``-v``)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import asyncio
 from dataclasses import replace
 from pathlib import Path
 
+from controller.cli.progress import TouchProgress, print_summary
 from controller.config import load_config
 from controller.request import ExploreRequest
 
@@ -29,12 +31,12 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
         help="how touches change the shape (default: the config's, fused)",
     )
     explore.add_argument("--input", choices=["rgb", "rgbd"], default="rgb")
-    explore.set_defaults(handler=_explore)
+    explore.set_defaults(handler=_explore, quiet_logging=True)
 
 
 def _explore(args: argparse.Namespace) -> int:
     from controller.perception.learned import make_perception
-    from controller.service import TouchshapeService
+    from controller.service import SESSION_LOG_FILE, TouchshapeService
 
     config = load_config(args.config)
     if args.object:
@@ -51,31 +53,27 @@ def _explore(args: argparse.Namespace) -> int:
     )
 
     async def run() -> dict:
-        service = TouchshapeService(config, make_perception)
+        progress = TouchProgress(request.max_touches, scored=False)
+        service = TouchshapeService(config, make_perception, on_publish=progress)
         await service.start()
         try:
-            service.start_session(request)
+            # Only the simulated bench knows the true shape: then each touch line waits for
+            # its score.
+            progress.scored = service.devices is not None and service.devices.world is not None
+            print(
+                f"exploring {config.sim.object if progress.scored else 'the object'}: "
+                f"{request.max_touches} touches, {request.policy} policy, "
+                f"{request.update} update, {request.input} input"
+            )
+            session_id = service.start_session(request)
+            print(f"session {session_id}: log {service.logs_dir / session_id / SESSION_LOG_FILE}")
             summary = await service.wait_session()
         finally:
             await service.stop()
+            progress.finish()
         assert summary is not None
         return summary
 
     summary = asyncio.run(run())
-    _print_summary(summary)
+    print_summary(summary)
     return 0 if summary["state"] == "done" else 1
-
-
-def _print_summary(summary: dict) -> None:
-    rows = [
-        ("session", summary["session"]),
-        ("result", summary["state"] + (f" ({summary['error']})" if summary["error"] else "")),
-        ("touches", f"{summary['touches']} ({summary['contacts']} contacts)"),
-        ("compute / motion", f"{summary['compute_s']:.1f} s / {summary['motion_s']:.1f} s"),
-    ]
-    for metric, values in summary.get("metrics", {}).items():
-        rows.append((metric, " -> ".join(f"{v:.2f}" for v in (values[0], values[-1]))))
-    rows += [(name, path) for name, path in summary.get("artifacts", {}).items()]
-    width = max(len(name) for name, _ in rows)
-    for name, value in rows:
-        print(f"{name:<{width}}  {value}")

@@ -8,7 +8,20 @@ import logging
 import sys
 from collections.abc import Callable, Sequence
 
-from controller.cli import bench, calibrate, check, config, explore, gelsight, prior, serve, sim
+from controller.cli import (
+    bench,
+    calibrate,
+    check,
+    config,
+    explore,
+    gelsight,
+    prior,
+    replay,
+    review,
+    serve,
+    sessions,
+    sim,
+)
 from controller.config import ConfigError
 from drivers.base import DeviceError
 
@@ -36,7 +49,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     groups = parser.add_subparsers(dest="group", required=True, metavar="COMMAND")
-    for module in (config, sim, bench, prior, check, gelsight, serve, explore, calibrate):
+    for module in (
+        config,
+        sim,
+        bench,
+        prior,
+        check,
+        gelsight,
+        serve,
+        explore,
+        sessions,
+        review,
+        replay,
+        calibrate,
+    ):
         module.add_commands(groups)
     return parser
 
@@ -47,6 +73,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    if getattr(args, "quiet_logging", False) and not args.verbose:
+        # The command prints its own progress; records go to the session's log file only.
+        for stderr_handler in logging.getLogger().handlers:
+            stderr_handler.setLevel(logging.CRITICAL + 1)
     handler: Callable[[argparse.Namespace], int] = args.handler
     try:
         return handler(args)

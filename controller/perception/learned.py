@@ -414,8 +414,9 @@ class LearnedPerception:
         )
 
 
-def make_perception(config: Config, devices: Devices) -> LearnedPerception:
-    """The perception the service uses (``touchshape serve`` / ``explore``)."""
+def make_perception(config: Config, devices: Devices | None = None) -> LearnedPerception:
+    """The perception the service uses (``touchshape serve`` / ``explore``; ``replay`` has no
+    devices: it needs none)."""
     camera_position = config.cameras.rgbd.pose_world_camera()[:3, 3]
     perception = LearnedPerception(
         config,

@@ -44,14 +44,19 @@ class ShapeEstimate:
     fused: Any | None = None
     """The fused shape (``models.touch.fused.FusedShape``) when the fused update made this
     estimate: ``probabilities`` are then its P(inside) at the voxel centres."""
+    _surface: trimesh.Trimesh | None = field(default=None, init=False, repr=False, compare=False)
 
     def surface_mesh(self) -> trimesh.Trimesh:
         """The estimate's surface (world metres), extracted at ``EXTRACTION_SPACING_M``: the
         fused field's, or the voxel estimate's through the same extraction, so estimates of
-        every update compare like with like."""
-        if self.fused is not None:
-            return self.fused.mesh()
-        return prior_surface(self.probabilities, self.grid)
+        every update compare like with like. Extracted once (~1 s): the recording, the score
+        and the artifacts share it; an estimate is not changed once made."""
+        if self._surface is None:
+            fused = self.fused
+            self._surface = (
+                fused.mesh() if fused is not None else prior_surface(self.probabilities, self.grid)
+            )
+        return self._surface
 
     def occupied_points_world(self, threshold: float = 0.5) -> FloatArray:
         """Centres of the voxels whose probability is above ``threshold`` (world, metres)."""

@@ -13,6 +13,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from drivers.base import depth_m_from_mm, depth_mm_from_m
+
 COLOUR_SIZE = (1920, 1080)
 DEPTH_SIZE = (512, 424)
 POLL_S = 0.002
@@ -152,4 +154,5 @@ def _registered(session: _Session) -> tuple[NDArray[np.uint8], NDArray[np.float3
     finally:
         session.listener.release(frames)
     depth_m[~np.isfinite(depth_m) | (depth_m < 0)] = 0.0
-    return colour, depth_m.astype(np.float32, copy=False)
+    # Whole millimetres: the sensor's precision, and what the session files store.
+    return colour, depth_m_from_mm(depth_mm_from_m(depth_m))

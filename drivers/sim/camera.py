@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivers.base import DeviceNotConnectedError, RGBDCamera, RGBDFrame
+from drivers.base import (
+    DeviceNotConnectedError,
+    RGBDCamera,
+    RGBDFrame,
+    depth_m_from_mm,
+    depth_mm_from_m,
+)
 from drivers.config import CameraConfig
 from drivers.sim.world import SimWorld
 from models.camera import CameraIntrinsics
@@ -60,7 +66,8 @@ class SimKinect(RGBDCamera):
             )
         return RGBDFrame(
             colour_rgb=clean.colour_rgb.copy(),
-            depth_m=depth.astype(np.float32),
+            # Whole millimetres, as the Kinect delivers them and the session files store them.
+            depth_m=depth_m_from_mm(depth_mm_from_m(depth)),
             intrinsics=self.intrinsics,
             pose_world_camera=self.pose_world_camera.copy(),
             timestamp_s=timestamp_s,

@@ -18,17 +18,15 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
-from controller import recording
+from controller import recording_recovery
 from controller.config import Config
-from controller.recording import (
-    BLUEPRINT_FILE,
-    INTERRUPTED,
-    SessionRecorder,
-    recover_interrupted_sessions,
-)
+from controller.recording import SessionRecorder
+from controller.recording_layout import BLUEPRINT_FILE
+from controller.recording_recovery import INTERRUPTED, recover_interrupted_sessions
 from controller.request import ExploreRequest
 from controller.service import TouchshapeService
 from tests.fakes.perception import make_cylinder_perception
@@ -92,9 +90,14 @@ def assert_touches_recorded(
         if touch["contact_point_world"] is not None:
             (position,) = rows["world/touch/contact"][number]["Points3D:positions"]
             assert position == pytest.approx(touch["contact_point_world"], abs=1e-6)
+            patch = rows[f"world/contacts/{number:03d}/points"][number]["Points3D:positions"]
+            assert np.linalg.norm(np.mean(patch, axis=0) - position) < 0.02
         (target_origin,) = rows["world/touch/target"][number]["Arrows3D:origins"]
         assert len(target_origin) == 3
     assert set(rows["metrics/voxels_flipped"]) >= set(range(1, refined + 1))
+    # The surfaces: vision's at touch 0, the current one from then on at each refine.
+    assert set(rows["world/estimate/vision"]) == {0}
+    assert set(rows["world/estimate/current"]) >= set(range(refined + 1))
     assert set(rows["gelsight/image"]) == numbers  # nothing of a touch that did not complete
 
 
@@ -234,14 +237,14 @@ def test_a_session_that_cannot_be_summarised_does_not_stop_the_others(
     for name in ("full", "fine"):
         (tmp_path / name).mkdir()
         (tmp_path / name / "touches.jsonl").write_text('{"touch": 1, "contact": false}\n')
-    write = recording.write_json_atomically
+    write = recording_recovery.write_json_atomically
 
     def disk_full_in_one_folder(path: Path, value: Any) -> Path:
         if path.parent.name == "full":
             raise OSError(28, "No space left on device")
         return write(path, value)
 
-    monkeypatch.setattr(recording, "write_json_atomically", disk_full_in_one_folder)
+    monkeypatch.setattr(recording_recovery, "write_json_atomically", disk_full_in_one_folder)
     assert [s["session"] for s in recover_interrupted_sessions(tmp_path)] == ["fine"]
     assert "full: could not write its interrupted summary" in caplog.text
     monkeypatch.undo()

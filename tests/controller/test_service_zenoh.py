@@ -67,6 +67,11 @@ async def test_remote_session_end_to_end(served) -> None:
         result = client.messages["result"][0]
         rrd = result["artifacts"]["recording"]
         assert rrd.endswith(".rrd")
+        assert Path(result["artifacts"]["picture"]).name == "shape.png"
+        assert Path(result["artifacts"]["picture"]).is_file()
+        # The sim scores every estimate: vision (touch 0) and after each of the 2 touches.
+        scores = [m for m in client.messages["score"] if m["session"] == reply["session"]]
+        assert sorted(m["touch"] for m in scores) == [0, 1, 2]
         rerun = Path(sys.executable).with_name("rerun")
         verified = await asyncio.to_thread(
             subprocess.run, [str(rerun), "rrd", "verify", rrd], capture_output=True

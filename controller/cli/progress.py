@@ -1,0 +1,119 @@
+"""One line per touch while a session runs, and the summary table after it: what
+``touchshape explore`` and ``touchshape replay`` print (log records go to the session's
+``session.log``)."""
+
+from __future__ import annotations
+
+import sys
+import threading
+from pathlib import Path
+from typing import Any, TextIO
+
+
+class TouchProgress:
+    """Turns the service's publications (``state``, ``touch``, ``score``) into one line per
+    touch: touch n/N, its end state, contact, force and, when the bench knows the truth, the
+    Chamfer distance after it. With scores, a touch's line waits for its score (they come from
+    the background, in order of the estimates); ``finish`` prints what is still waiting."""
+
+    def __init__(self, max_touches: int, *, scored: bool, out: TextIO | None = None) -> None:
+        self.max_touches = max_touches
+        self.scored = scored
+        self.out = out or sys.stdout
+        self._lock = threading.Lock()
+        self._waiting: dict[int, tuple[str, bool]] = {}
+        """Lines by touch (0 = vision) not printed yet, and whether each waits for a score."""
+        self._scores: dict[int, float] = {}
+
+    def __call__(self, name: str, body: dict[str, Any]) -> None:
+        with self._lock:
+            if name == "state":
+                self._on_state(body)
+            elif name == "touch":
+                self._on_touch(body)
+            elif name == "score":
+                self._scores[int(body["touch"])] = float(body["chamfer_mm"])
+                self._print_ready()
+
+    def _on_state(self, body: dict[str, Any]) -> None:
+        state = str(body["state"])
+        if state == "select" and body.get("previous") == "reconstruct":
+            self._queue(0, "vision", self.scored)
+        elif state in ("fault", "aborted"):
+            self._print(f"{state}: {body.get('detail', '')}")
+
+    def _on_touch(self, body: dict[str, Any]) -> None:
+        touch = int(body["touch"])
+        width = len(str(self.max_touches))
+        head = f"touch {touch:>{width}}/{self.max_touches}"
+        if "error" in body:  # refused: no estimate of its own, so no score to wait for
+            line = f"{head}  refused   contact {_yes(body.get('contact'))}  {body['error']}"
+            self._queue(touch, line, False)
+            return
+        line = (
+            f"{head}  {'touched':<8}  contact {_yes(body['contact'])}  "
+            f"force {float(body['force_n']):4.1f} N"
+        )
+        self._queue(touch, line, self.scored)
+
+    def _queue(self, touch: int, line: str, wants_score: bool) -> None:
+        self._waiting[touch] = (line, wants_score)
+        self._print_ready()
+
+    def _print_ready(self) -> None:
+        """The waiting lines, in touch order, up to the first whose score has not come."""
+        while self._waiting:
+            touch = min(self._waiting)
+            line, wants_score = self._waiting[touch]
+            if wants_score and touch not in self._scores:
+                return
+            del self._waiting[touch]
+            score = f"  Chamfer {self._scores[touch]:5.2f} mm" if wants_score else ""
+            self._print(line + score)
+
+    def finish(self) -> None:
+        """Print the lines whose scores never came (a fault ended the session)."""
+        with self._lock:
+            for touch in sorted(self._waiting):
+                self._print(self._waiting[touch][0])
+            self._waiting.clear()
+
+    def _print(self, line: str) -> None:
+        print(line, file=self.out, flush=True)
+
+
+def _yes(value: Any) -> str:
+    return "yes" if value else "no "
+
+
+def print_summary(summary: dict[str, Any], out: TextIO | None = None) -> None:
+    """The session's summary as a two-column table: result, touches, times, scores, files."""
+    artifacts = summary.get("artifacts", {})
+    rows = [
+        ("session", summary["session"]),
+        ("result", summary["state"] + (f" ({summary['error']})" if summary.get("error") else "")),
+        ("touches", f"{summary['touches']} ({summary['contacts']} contacts)"),
+    ]
+    if "replay_of" in summary:
+        rows.append(("replay of", summary["replay_of"]))
+    else:
+        rows.append(
+            ("compute / motion", f"{summary['compute_s']:.1f} s / {summary['motion_s']:.1f} s")
+        )
+    for metric, values in summary.get("metrics", {}).items():
+        if values:
+            rows.append((metric, " -> ".join(f"{v:.2f}" for v in (values[0], values[-1]))))
+    if "summary" in artifacts:
+        rows.append(("folder", str(_parent(artifacts["summary"]))))
+    for name in ("picture", "recording"):
+        if name in artifacts:
+            rows.append((name, artifacts[name]))
+    if "recording" in artifacts:
+        rows.append(("review", f"touchshape review {summary['session']}"))
+    width = max(len(name) for name, _ in rows)
+    for name, value in rows:
+        print(f"{name:<{width}}  {value}", file=out or sys.stdout)
+
+
+def _parent(path: str) -> str:
+    return str(Path(path).parent) + "/"
