@@ -23,6 +23,7 @@ import fcntl
 import json
 import logging
 import os
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -116,6 +117,8 @@ class SessionRecorder:
         )
         self._rec.save(str(self.rrd_path))
         self._rec.set_log_time_enabled(False)  # the one timeline is ``touch``
+        self._background = ThreadPoolExecutor(max_workers=1, thread_name_prefix="recording")
+        """Recording work the session does not wait for, in order."""
         self._touch = 0
         self._log_styles()
         self._touches_file = self.touches_path.open("a", encoding="utf-8")
@@ -242,24 +245,38 @@ class SessionRecorder:
         )
 
     def log_estimate(self, estimate: ShapeEstimate, *, vision: bool) -> None:
-        """An estimate: its sketches (none: nothing logged), voxels and surface, coloured by the
-        fused shape's std; ``vision``: the first, also kept as the vision estimate."""
+        """An estimate: its sketches (none: nothing logged) and voxels now, its surface coloured
+        by the fused shape's std in the background (~1 s of marching cubes the robot need not
+        wait for; ``close`` waits for it). ``vision``: the first, also kept as the vision
+        estimate."""
         self.log_sketches(estimate.sketches)
         self.log_shape(estimate.probabilities, estimate.grid)
-        mesh = estimate.surface_mesh()
-        std = None if estimate.fused is None else estimate.fused.std(mesh.vertices)
-        for kind in ESTIMATE_KINDS if vision else ("current",):
-            self.log_estimate_mesh(kind, mesh, std)
+        kinds = ESTIMATE_KINDS if vision else ("current",)
+        self._background.submit(self._log_surface, estimate, kinds, self._touch)
+
+    def _log_surface(self, estimate: ShapeEstimate, kinds: tuple[str, ...], touch: int) -> None:
+        try:
+            mesh = estimate.surface_mesh()
+            std = None if estimate.fused is None else estimate.fused.std(mesh.vertices)
+            for kind in kinds:
+                self.log_estimate_mesh(kind, mesh, std, touch=touch)
+        except Exception:  # the recording of a surface must not end the session
+            log.exception("recording the surface of touch %d failed", touch)
 
     def log_estimate_mesh(
-        self, kind: str, mesh: trimesh.Trimesh, vertex_std_m: NDArray[np.floating] | None = None
+        self,
+        kind: str,
+        mesh: trimesh.Trimesh,
+        vertex_std_m: NDArray[np.floating] | None = None,
+        *,
+        touch: int | None = None,
     ) -> None:
         """A shape estimate's surface (world metres, ``ShapeEstimate.surface_mesh``) as
         ``world/estimate/<kind>``: ``vision`` (touch 0) or ``current`` (each refine). With the
         fused shape's posterior std at its vertices, coloured by it (``STD_RANGE_MM``)."""
         if kind not in ESTIMATE_KINDS:
             raise ValueError(f"estimate kind {kind!r} is not one of {ESTIMATE_KINDS}")
-        self._now()
+        self._now(touch)
         path = f"world/estimate/{kind}"
         if len(mesh.faces) == 0:  # nothing extracted: do not leave an older surface showing
             self._log(path, rr.Clear(recursive=False))
@@ -391,7 +408,9 @@ class SessionRecorder:
         return write_json_atomically(self.artifacts_dir / "summary.json", summary)
 
     def close(self) -> None:
-        """Flush and close the files; the recorder records nothing after this."""
+        """Finish the background work, flush and close the files; the recorder records nothing
+        after this."""
+        self._background.shutdown(wait=True)
         self._touches_file.close()
         self._motions_file.close()
         if self._rec is None:

@@ -12,8 +12,9 @@ from typing import Any, TextIO
 
 class TouchProgress:
     """Turns the service's publications (``state``, ``touch``, ``score``) into one line per
-    touch: touch n/N, its end state, contact, force and, when the bench knows the truth, the
-    Chamfer distance after it. With scores, a touch's line waits for its score (they come from
+    touch: touch n/N, its end state, contact (the gripper's force) and the surface points its
+    height map gave, the force and, when the bench knows the truth, the Chamfer distance after
+    it. With scores, a touch's line waits for its score (they come from
     the background, in order of the estimates); ``finish`` prints what is still waiting."""
 
     def __init__(self, max_touches: int, *, scored: bool, out: TextIO | None = None) -> None:
@@ -38,7 +39,8 @@ class TouchProgress:
     def _on_state(self, body: dict[str, Any]) -> None:
         state = str(body["state"])
         if state == "select" and body.get("previous") == "reconstruct":
-            self._queue(0, "vision", self.scored)
+            width = len(f"touch {self.max_touches}/{self.max_touches}  {'touched':<8}")
+            self._queue(0, f"{'vision':<{width}}", self.scored)
         elif state in ("fault", "aborted"):
             self._print(f"{state}: {body.get('detail', '')}")
 
@@ -51,8 +53,8 @@ class TouchProgress:
             self._queue(touch, line, False)
             return
         line = (
-            f"{head}  {'touched':<8}  contact {_yes(body['contact'])}  "
-            f"force {float(body['force_n']):4.1f} N"
+            f"{head}  {'touched':<8}  contact {_yes(body['contact'])} "
+            f"{int(body['contact_points']):5d} points  force {float(body['force_n']):4.1f} N"
         )
         self._queue(touch, line, self.scored)
 

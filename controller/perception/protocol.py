@@ -4,6 +4,7 @@ it with the shape prior, the GelSight reconstruction, the touch constraints and 
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -45,18 +46,24 @@ class ShapeEstimate:
     """The fused shape (``models.touch.fused.FusedShape``) when the fused update made this
     estimate: ``probabilities`` are then its P(inside) at the voxel centres."""
     _surface: trimesh.Trimesh | None = field(default=None, init=False, repr=False, compare=False)
+    _surface_lock: threading.Lock = field(
+        default_factory=threading.Lock, init=False, repr=False, compare=False
+    )
 
     def surface_mesh(self) -> trimesh.Trimesh:
         """The estimate's surface (world metres), extracted at ``EXTRACTION_SPACING_M``: the
         fused field's, or the voxel estimate's through the same extraction, so estimates of
         every update compare like with like. Extracted once (~1 s): the recording, the score
         and the artifacts share it; an estimate is not changed once made."""
-        if self._surface is None:
-            fused = self.fused
-            self._surface = (
-                fused.mesh() if fused is not None else prior_surface(self.probabilities, self.grid)
-            )
-        return self._surface
+        with self._surface_lock:  # the recording and the score ask for it from two threads
+            if self._surface is None:
+                fused = self.fused
+                self._surface = (
+                    fused.mesh()
+                    if fused is not None
+                    else prior_surface(self.probabilities, self.grid)
+                )
+            return self._surface
 
     def occupied_points_world(self, threshold: float = 0.5) -> FloatArray:
         """Centres of the voxels whose probability is above ``threshold`` (world, metres)."""

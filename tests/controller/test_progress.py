@@ -1,0 +1,42 @@
+"""The explore progress: one line per touch, in touch order, each with its score when the bench
+scores estimates (scores come from the background, maybe late or out of order)."""
+
+from __future__ import annotations
+
+import io
+
+from controller.cli.progress import TouchProgress
+
+
+def _touch(number: int, points: int = 100) -> dict:
+    return {"touch": number, "contact": True, "contact_points": points, "force_n": 5.0}
+
+
+def test_lines_wait_for_their_scores_and_keep_touch_order() -> None:
+    out = io.StringIO()
+    progress = TouchProgress(3, scored=True, out=out)
+    progress("state", {"state": "select", "previous": "reconstruct"})
+    progress("touch", _touch(1))
+    progress("score", {"touch": 1, "chamfer_mm": 5.5})  # before vision's: waits for it
+    assert out.getvalue() == ""
+    progress("score", {"touch": 0, "chamfer_mm": 6.0})
+    progress("touch", {"touch": 2, "contact": False, "error": "refused: no height map"})
+    progress("touch", _touch(3, points=0))
+    progress("state", {"state": "fault", "detail": "arm: protective stop"})
+    progress.finish()  # touch 3's score never came
+    lines = out.getvalue().splitlines()
+    assert [line.split()[0] for line in lines] == ["vision", "touch", "touch", "fault:", "touch"]
+    assert lines[0].endswith("Chamfer  6.00 mm")
+    assert lines[1].startswith("touch 1/3") and lines[1].endswith("Chamfer  5.50 mm")
+    assert "100 points" in lines[1] and "force  5.0 N" in lines[1]
+    assert lines[2].startswith("touch 2/3  refused") and "Chamfer" not in lines[2]
+    assert lines[3] == "fault: arm: protective stop"
+    assert lines[4].startswith("touch 3/3") and "    0 points" in lines[4]
+
+
+def test_without_scores_a_touch_prints_at_once() -> None:
+    out = io.StringIO()
+    progress = TouchProgress(10, scored=False, out=out)
+    progress("state", {"state": "select", "previous": "reconstruct"})
+    progress("touch", _touch(1))
+    assert out.getvalue().splitlines()[1].startswith("touch  1/10  touched   contact yes")
