@@ -206,7 +206,11 @@ def save_artifacts(
 def _save_png(path: Path, image: NDArray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     picture = Image.fromarray(np.ascontiguousarray(image))
-    write_atomically(path, lambda temporary: picture.save(temporary, format="PNG"))
+    # Fast compression: level 6 takes ~340 ms a GelSight frame on the touch's path, level 1
+    # ~60 ms for files ~20 % larger.
+    write_atomically(
+        path, lambda temporary: picture.save(temporary, format="PNG", compress_level=1)
+    )
 
 
 # --- reading ----------------------------------------------------------------------------------
