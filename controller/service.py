@@ -248,11 +248,14 @@ class TouchshapeService:
 
     def _save_inputs(self, folder: Path) -> None:
         """What a replay needs besides the sensors' data: the effective config and, on the
-        simulated bench, the true object."""
-        save_config(folder, self.config)
+        simulated bench, the true object. A failed write costs the replay, not the session."""
         world = self.devices.world if self.devices is not None else None
-        if world is not None:
-            save_truth(folder, world.object_mesh_world)
+        try:
+            save_config(folder, self.config)
+            if world is not None:
+                save_truth(folder, world.object_mesh_world)
+        except OSError as error:
+            log.error("%s: the session's config or truth could not be saved: %s", folder, error)
 
     def _save_artifacts(
         self, session: ExplorationSession, recorder: SessionRecorder

@@ -69,14 +69,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    # A command that prints its own progress (explore, replay) logs to the session's log file
+    # only, unless -v: no stderr handler (the null one keeps Python's last-resort one quiet).
+    quiet = getattr(args, "quiet_logging", False) and not args.verbose
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        handlers=[logging.NullHandler()] if quiet else None,
     )
-    if getattr(args, "quiet_logging", False) and not args.verbose:
-        # The command prints its own progress; records go to the session's log file only.
-        for stderr_handler in logging.getLogger().handlers:
-            stderr_handler.setLevel(logging.CRITICAL + 1)
     handler: Callable[[argparse.Namespace], int] = args.handler
     try:
         return handler(args)

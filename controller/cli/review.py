@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import IO
 from urllib.parse import quote
 
+from controller.cli.sessions import find_session
 from controller.config import load_config
 
 LOOPBACK = "127.0.0.1"
@@ -56,7 +57,7 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
 
 def session_folder(session: str, logs_dir: Path | None, config: Path | None = None) -> Path:
     """The session's folder: ``session`` itself when it is a folder (or its ``.rrd``), else the
-    id in ``logs_dir`` (default: the config's logging dir)."""
+    id (or a unique start of it) in ``logs_dir`` (default: the config's logging dir)."""
     path = Path(session)
     if path.suffix == ".rrd":
         return path.with_suffix("")
@@ -64,7 +65,8 @@ def session_folder(session: str, logs_dir: Path | None, config: Path | None = No
         return path
     if logs_dir is None:
         logs_dir = Path(load_config(config).logging.dir)
-    return logs_dir / session
+    found = find_session(logs_dir, session)  # the id, or a unique start of it
+    return found.folder if found is not None else logs_dir / session
 
 
 def recording_of(session_dir: Path) -> Path:
@@ -120,8 +122,7 @@ def start_web_viewer(
                     return process
             except (urllib.error.URLError, OSError):
                 time.sleep(0.2)
-    process.terminate()
-    process.wait(timeout=10)
+    _stop(process)
     raise RuntimeError(f"the web viewer did not answer on port {port} in {timeout_s:.0f} s")
 
 
@@ -155,14 +156,24 @@ def _review(args: argparse.Namespace) -> int:
     except RuntimeError as error:
         print(f"touchshape: error: rerun web viewer: {error}", file=sys.stderr)
         return 1
-    print(f"open {web_url(args.port, args.grpc_port)}  (Ctrl-C stops the viewer)", flush=True)
     # Stopped any way (Ctrl-C, a kill), the command takes its server with it.
     signal.signal(signal.SIGTERM, lambda number, frame: sys.exit(0))
     try:
+        print(f"open {web_url(args.port, args.grpc_port)}  (Ctrl-C stops the viewer)", flush=True)
         return process.wait()
     except KeyboardInterrupt:
         return 0
     finally:
-        if process.poll() is None:
-            process.terminate()
-            process.wait(timeout=10)
+        _stop(process)
+
+
+def _stop(process: subprocess.Popen[bytes]) -> None:
+    """Terminate the viewer's server; kill it if it has not ended in 5 s (a loaded machine)."""
+    if process.poll() is not None:
+        return
+    process.terminate()
+    try:
+        process.wait(timeout=5)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()

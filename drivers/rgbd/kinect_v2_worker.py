@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.base import depth_m_from_mm, depth_mm_from_m
+from drivers.base import depth_m_from_mm
 
 COLOUR_SIZE = (1920, 1080)
 DEPTH_SIZE = (512, 424)
@@ -149,10 +149,10 @@ def _registered(session: _Session) -> tuple[NDArray[np.uint8], NDArray[np.float3
         # release: the SDK reuses the frame buffers.
         bgrx = resample_nearest(frames["color"].asarray(), height, width)
         colour = np.ascontiguousarray(bgrx[..., 2::-1])
-        depth_mm = session.bigdepth.asarray(np.float32)[1:-1]  # drop the padding rows
-        depth_m = resample_nearest(depth_mm, height, width) * np.float32(1e-3)
+        bigdepth_mm = session.bigdepth.asarray(np.float32)[1:-1]  # drop the padding rows
+        depth_mm = np.array(resample_nearest(bigdepth_mm, height, width))  # a copy: see above
     finally:
         session.listener.release(frames)
-    depth_m[~np.isfinite(depth_m) | (depth_m < 0)] = 0.0
+    depth_mm[~np.isfinite(depth_mm) | (depth_mm < 0)] = 0.0
     # Whole millimetres: the sensor's precision, and what the session files store.
-    return colour, depth_m_from_mm(depth_mm_from_m(depth_m))
+    return colour, depth_m_from_mm(np.clip(np.round(depth_mm), 0, 65535).astype(np.uint16))

@@ -74,6 +74,10 @@ def test_a_session_is_a_folder_a_recording_or_an_id_in_the_logs(tmp_path: Path) 
     assert review.session_folder("s1", tmp_path / "other") == tmp_path / "other" / "s1"
     assert review.session_folder("s1", None, config) == tmp_path / "configured" / "s1"
     assert review.session_folder("s1", None) == Path("logs") / "s1"  # the default config's
+    (tmp_path / "other" / "20261202-101500-a1b2c3").mkdir(parents=True)
+    (tmp_path / "other" / "20261202-101500-a1b2c3" / "request.json").write_text("{}")
+    started = review.session_folder("20261202-1015", tmp_path / "other")
+    assert started == tmp_path / "other" / "20261202-101500-a1b2c3"
 
 
 def test_a_missing_recording_is_one_line_naming_it(

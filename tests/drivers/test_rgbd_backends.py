@@ -102,11 +102,11 @@ async def test_kinect_registers_depth_to_colour_in_metres(monkeypatch, tmp_path:
     assert frame.colour_rgb.shape == (540, 960, 3) and frame.depth_m.shape == (540, 960)
     index = int(frame.colour_rgb[0, 0, 0])  # the fake's frame number, in red
     # Nearest samples of the SDK's registered depth ("bigdepth", 1082 rows with a padding row
-    # above and below the 1080 colour rows), millimetres -> metres, no return -> 0.
+    # above and below the 1080 colour rows), whole millimetres -> metres, no return -> 0.
     rows = np.floor((np.arange(540) + 0.5) * 2).astype(int)
     cols = np.floor((np.arange(960) + 0.5) * 2).astype(int)
     bigdepth = fake_freenect2.bigdepth_mm(fake_freenect2.depth_mm(index))
-    expected = bigdepth[1:-1][np.ix_(rows, cols)] / 1000.0
+    expected = np.round(bigdepth[1:-1][np.ix_(rows, cols)]) / 1000.0
     expected[~np.isfinite(expected)] = 0.0
     np.testing.assert_allclose(frame.depth_m, expected, rtol=1e-6)
     assert frame.depth_m[:, :10].max() == 0.0 and frame.depth_m[270, 480] > 0.7
