@@ -156,7 +156,9 @@ def _review(args: argparse.Namespace) -> int:
     except RuntimeError as error:
         print(f"touchshape: error: rerun web viewer: {error}", file=sys.stderr)
         return 1
-    # Stopped any way (Ctrl-C, a kill), the command takes its server with it.
+    # Stopped any way (Ctrl-C, a kill), the command takes its server with it. Ctrl-C too when
+    # the command was started with SIGINT ignored (a background job of a shell inherits that).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, lambda number, frame: sys.exit(0))
     try:
         print(f"open {web_url(args.port, args.grpc_port)}  (Ctrl-C stops the viewer)", flush=True)
