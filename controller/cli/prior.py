@@ -108,6 +108,12 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
                 help="BCE weight of occupied voxels (1 = the paper's BCE)",
             )
             parser.add_argument(
+                "--predicted-sketch-prob",
+                type=float,
+                default=0.0,
+                help="fraction of samples whose input is the --sketch-weights net's prediction",
+            )
+            parser.add_argument(
                 "--sensor-depth-prob",
                 type=float,
                 default=0.5,
@@ -242,6 +248,7 @@ def train_network(args: argparse.Namespace) -> int:
         sketch_weights=getattr(args, "sketch_weights", None),
         positive_weight=getattr(args, "positive_weight", 1.0),
         sensor_depth_prob=getattr(args, "sensor_depth_prob", 0.5),
+        predicted_sketch_prob=getattr(args, "predicted_sketch_prob", 0.0),
         augment=not args.no_augment,
         threads=args.threads,
     )

@@ -73,6 +73,10 @@ class TrainConfig:
     """Start from these network weights (e.g. the general prior to fine-tune the box prior)."""
     sketch_weights: str | None = None
     """Shape stage: also validate on sketches predicted by these sketch-net weights."""
+    predicted_sketch_prob: float = 0.0
+    """Shape stage: the fraction of samples whose input is the sketches the ``sketch_weights``
+    net predicts from the RGB, not the true ones: the shape net learns from what it will be
+    given (0: the paper's, true sketches only)."""
     sensor_depth_prob: float = 0.5
     positive_weight: float = 1.0
     """Shape stage: BCE weight of occupied voxels (1 = the paper's plain BCE)."""
@@ -153,6 +157,23 @@ def shape_loss(logits: Tensor, voxels: Tensor, positive_weight: float = 1.0) -> 
     """Binary cross-entropy over all voxels (``positive_weight`` > 1 up-weights occupied ones)."""
     weight = None if positive_weight == 1.0 else torch.tensor(positive_weight)
     return F.binary_cross_entropy_with_logits(logits, voxels, pos_weight=weight)
+
+
+def _mix_predicted_sketches(
+    inputs: Tensor,
+    batch: dict[str, Tensor],
+    sketch_net: SketchNet,
+    probability: float,
+    generator: torch.Generator,
+) -> Tensor:
+    """``inputs`` with the sketch net's prediction (frozen) in place of the true sketches for a
+    ``probability`` fraction of the samples."""
+    use = torch.rand(inputs.shape[0], 1, 1, 1, generator=generator) < probability
+    if not bool(use.any()):
+        return inputs
+    with torch.no_grad():
+        predicted = predicted_shape_input(sketch_net(normalise_rgb(batch["rgb"])))
+    return torch.where(use.to(inputs.device), predicted, inputs)
 
 
 def _collate(samples: list[dict[str, Tensor]]) -> dict[str, Tensor]:
@@ -261,6 +282,8 @@ def train(config: TrainConfig, *, progress: bool = True) -> dict:
     optimizer = paper_optimizer(config.stage, model, config.learning_rate)
     augment = colour_light_jitter().to(env.device) if config.augment else None
     sketch_net = None
+    if config.predicted_sketch_prob > 0 and not (config.stage == "shape" and config.sketch_weights):
+        raise ValueError("predicted_sketch_prob needs the shape stage and sketch_weights")
     if config.stage == "shape" and config.sketch_weights:
         sketch_net = SketchNet(get_preset(config.preset))
         load_weights(sketch_net, config.sketch_weights)
@@ -337,6 +360,11 @@ def train(config: TrainConfig, *, progress: bool = True) -> dict:
                 loss = losses["total"]
             else:
                 inputs = ground_truth_shape_input(batch, config.sensor_depth_prob, sample_noise)
+                if config.predicted_sketch_prob > 0:
+                    assert sketch_net is not None
+                    inputs = _mix_predicted_sketches(
+                        inputs, batch, sketch_net, config.predicted_sketch_prob, sample_noise
+                    )
                 loss = shape_loss(model(inputs), batch["voxels"], config.positive_weight)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()

@@ -16,9 +16,12 @@ from models.prior.dataset import BuildSpec, SketchVoxelDataset, ViewRecipe, buil
 from models.prior.networks import NetworkPreset, ShapeNet, SketchNet, normalise_rgb
 from models.prior.training import (
     TrainConfig,
+    _mix_predicted_sketches,
     epoch_learning_rate,
     ground_truth_shape_input,
     paper_optimizer,
+    predicted_shape_input,
+    save_weights,
     shape_loss,
     sketch_loss,
     train,
@@ -126,7 +129,10 @@ def test_train_writes_metrics_weights_and_resumes(tiny_data: Path, tmp_path: Pat
 def test_a_resumed_run_trains_bit_exact(tiny_data: Path, tmp_path: Path, stage: str) -> None:
     """Stopped after its first batch and resumed from the checkpoint, a run ends with the same
     weights as one never stopped: the next batch sees the same samples, jitter and noise."""
-    common = {"preset": "tiny", "epochs": 2, "batch_size": 2, "val_fraction": 0.3}
+    common: dict = {"preset": "tiny", "epochs": 2, "batch_size": 2, "val_fraction": 0.3}
+    if stage == "shape":  # half the samples from a sketch net's predictions: drawn per step too
+        save_weights(SketchNet(TINY_PRESET), "sketch", "tiny", tmp_path / "sketch.pt")
+        common |= {"sketch_weights": str(tmp_path / "sketch.pt"), "predicted_sketch_prob": 0.5}
     whole = TrainConfig(stage, str(tiny_data), str(tmp_path / "whole"), **common)
     train(whole, progress=False)
     parted = TrainConfig(stage, str(tiny_data), str(tmp_path / "parted"), **common)
@@ -147,6 +153,40 @@ def test_the_learning_rate_decays_by_epoch() -> None:
     config = TrainConfig("shape", "data", "out", lr_decay_epochs=(2, 4), lr_decay_factor=0.5)
     rates = [epoch_learning_rate(config, epoch) for epoch in range(6)]
     assert rates == pytest.approx([2e-2, 2e-2, 1e-2, 1e-2, 5e-3, 5e-3])
+
+
+def test_predicted_sketches_replace_the_true_ones_for_their_fraction(tiny_data: Path) -> None:
+    torch.manual_seed(0)
+    batch = _batch(tiny_data)
+    sketch_net = SketchNet(TINY_PRESET).eval()
+    true_inputs = ground_truth_shape_input(batch)
+    with torch.no_grad():
+        predicted = predicted_shape_input(sketch_net(normalise_rgb(batch["rgb"])))
+    assert not torch.equal(predicted, true_inputs)
+    every = _mix_predicted_sketches(
+        true_inputs, batch, sketch_net, 1.0, torch.Generator().manual_seed(1)
+    )
+    assert torch.equal(every, predicted)
+    none = _mix_predicted_sketches(
+        true_inputs, batch, sketch_net, 0.0, torch.Generator().manual_seed(1)
+    )
+    assert torch.equal(none, true_inputs)
+    half = _mix_predicted_sketches(
+        true_inputs, batch, sketch_net, 0.5, torch.Generator().manual_seed(1)
+    )
+    from_prediction = [torch.equal(half[i], predicted[i]) for i in range(len(half))]
+    assert 0 < sum(from_prediction) < len(half)
+    assert all(torch.equal(half[i], true_inputs[i]) for i, p in enumerate(from_prediction) if not p)
+
+
+def test_training_on_predicted_sketches_needs_the_sketch_weights(
+    tiny_data: Path, tmp_path: Path
+) -> None:
+    config = TrainConfig(
+        "shape", str(tiny_data), str(tmp_path / "s"), preset="tiny", predicted_sketch_prob=0.5
+    )
+    with pytest.raises(ValueError, match="sketch_weights"):
+        train(config, progress=False)
 
 
 def _ddp_worker(rank: int, port: int, data: str, out: str) -> None:
