@@ -29,4 +29,11 @@ $TS train shape --preset cpu --data $DATA --out $RUNS/shape \
     --seed 0 &
 SHAPE=$!
 wait $SKETCH $SHAPE
-echo "trained: $RUNS/sketch/sketch.pt $RUNS/shape/shape.pt"
+
+# 3. The shape net fine-tuned with half its inputs predicted by the finished sketch net: trained
+#    on true sketches only it scored IoU 0.38 on predicted ones against 0.67 on true ones.
+$TS train shape --preset cpu --data $DATA --out $RUNS/shape_on_predicted \
+    --init $RUNS/shape/shape.pt --sketch-weights $RUNS/sketch/sketch.pt \
+    --predicted-sketch-prob 0.5 --lr 2e-3 --lr-decay-epochs 3 --epochs 5 --batch-size 16 \
+    --max-minutes "$MINUTES" --threads 2 --seed 0
+echo "trained: $RUNS/sketch/sketch.pt $RUNS/shape_on_predicted/shape.pt"
