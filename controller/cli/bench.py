@@ -58,6 +58,9 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
         epilog="example: touchshape bench prior --json logs/bench_prior.json",
     )
     prior.add_argument("--repeats", type=int, default=10, help="timed calls per measurement")
+    prior.add_argument(
+        "--weights-dir", type=Path, default=None, help="priors to time (default: shipped)"
+    )
     prior.add_argument("--json", type=Path, default=None, help="also write the JSON here")
     prior.set_defaults(handler=bench_prior)
 
@@ -234,7 +237,10 @@ def bench_prior(args: argparse.Namespace) -> int:
     from controller.benchmarks.prior import benchmark_prior
 
     config = load_config(None)
-    print_json(benchmark_prior(evaluation_camera(config), repeats=args.repeats), args.json)
+    figures = benchmark_prior(
+        evaluation_camera(config), repeats=args.repeats, weights_dir=args.weights_dir
+    )
+    print_json(figures, args.json)
     return 0
 
 

@@ -17,7 +17,7 @@ from scipy import ndimage
 
 from models.camera import CameraIntrinsics
 from models.geometry import VoxelGrid, invert_transform, transform_points
-from models.prior.shape_prior import PriorPrediction, ShapePrior
+from models.prior.shape_prior import PriorPrediction, ShapePrior, SketchCache
 
 AUTO = "auto"
 """The prior name that asks for the choice."""
@@ -69,9 +69,18 @@ def choose_prior(
     if not priors:
         raise ValueError("no priors to choose from")
     # Each prediction carries the name it was asked for (a loaded prior may call itself else).
+    # Priors that share a sketch net (general and box) run it once on a crop they share.
+    sketch_cache: SketchCache = {}
     predictions = {
         name: replace(
-            prior.predict(colour_rgb, intrinsics, pose_world_camera, grid, depth_m=depth_m),
+            prior.predict(
+                colour_rgb,
+                intrinsics,
+                pose_world_camera,
+                grid,
+                depth_m=depth_m,
+                sketch_cache=sketch_cache,
+            ),
             prior=name,
         )
         for name, prior in priors.items()

@@ -87,6 +87,10 @@ def available_priors(weights_dir: str | Path | None = None) -> dict[str, list[Pr
     return priors
 
 
+SketchCache = dict[tuple[str, GridCrop], dict[str, torch.Tensor]]
+"""Sketch-net outputs on one image by (``ShapePrior.sketch_key``, crop)."""
+
+
 @dataclass
 class PriorPrediction:
     """What a prior sees and predicts for one frame.
@@ -119,11 +123,15 @@ class ShapePrior:
         grid_extent_m: float = 0.26,
         frame: Literal["fixed", "object"] = "fixed",
         device: str | torch.device = "cpu",
+        sketch_key: str | None = None,
     ) -> None:
         self.name = name
         self.preset: NetworkPreset = shape_net.preset
         self.grid_extent_m = grid_extent_m
         self.frame = frame
+        self.sketch_key = sketch_key or f"sketch-net-{id(sketch_net)}"
+        """Names the sketch net's weights: priors with the same key see the same sketches, so
+        the automatic choice runs that net once per crop (:class:`SketchCache`)."""
         self.device = torch.device(device)
         self.sketch_net = sketch_net.to(self.device).eval()
         self.shape_net = shape_net.to(self.device).eval()
@@ -169,6 +177,7 @@ class ShapePrior:
             grid_extent_m=spec.grid_extent_m,
             frame=spec.frame,
             device=device,
+            sketch_key=f"{(folder / spec.sketch_weights).resolve()}:{preset}",
         )
 
     @classmethod
@@ -212,19 +221,22 @@ class ShapePrior:
         grid: VoxelGrid,
         *,
         depth_m: np.ndarray | None = None,
+        sketch_cache: SketchCache | None = None,
     ) -> PriorPrediction:
         """Voxels from a full camera frame: (H, W, 3) uint8 RGB, its pinhole intrinsics and
         ``pose_world_camera``; ``grid`` is the registered voxel grid (in the object frame, its
         axes and object point place the search grid; the prediction's ``grid`` is the fitted
         one). With ``depth_m`` (H, W z-depth metres registered to the colour image, 0 = no
         return; RGB-D mode) the sensor depth replaces the predicted depth wherever it returned
-        (and finds the object's silhouette in the object frame)."""
+        (and finds the object's silhouette in the object frame). ``sketch_cache`` shares the
+        sketch net's outputs on this image between priors (one cache per image)."""
         self.check_grid(grid)
         if self.frame == "object":
-            grid = self.object_grid(colour_rgb, intrinsics, pose_world_camera, grid, depth_m)
+            grid = self.object_grid(
+                colour_rgb, intrinsics, pose_world_camera, grid, depth_m, sketch_cache
+            )
         crop = grid_crop(intrinsics, pose_world_camera, grid, self.preset.image_size)
-        rgb = torch.from_numpy(crop_image(colour_rgb, crop)).permute(2, 0, 1)[None]
-        sketches = self.sketch_net(normalise_rgb(rgb.to(self.device)))
+        sketches = self.sketches(colour_rgb, crop, sketch_cache)
         silhouette = torch.sigmoid(sketches["silhouette_logits"])
         mask = (silhouette > 0.5).float()
         depth = sketches["depth"]
@@ -246,6 +258,19 @@ class ShapePrior:
             prior=self.name,
         )
 
+    def sketches(
+        self, colour_rgb: np.ndarray, crop: GridCrop, cache: SketchCache | None = None
+    ) -> dict[str, torch.Tensor]:
+        """The sketch net's outputs on ``crop`` of the image (from ``cache`` if there)."""
+        key = (self.sketch_key, crop)
+        if cache is not None and key in cache:
+            return cache[key]
+        rgb = torch.from_numpy(crop_image(colour_rgb, crop)).permute(2, 0, 1)[None]
+        sketches = self.sketch_net(normalise_rgb(rgb.to(self.device)))
+        if cache is not None:
+            cache[key] = sketches
+        return sketches
+
     def object_grid(
         self,
         colour_rgb: np.ndarray,
@@ -253,6 +278,7 @@ class ShapePrior:
         pose_world_camera: np.ndarray,
         registered: VoxelGrid,
         depth_m: np.ndarray | None = None,
+        sketch_cache: SketchCache | None = None,
     ) -> VoxelGrid:
         """The grid fitted to the object: its silhouette in the search crop (from the sensor's
         depth with RGB-D, else the sketch net's), then :func:`fit_object_grid`. An image with no
@@ -263,8 +289,7 @@ class ShapePrior:
             depth = crop_image(depth_m.astype(np.float32), crop, nearest=True)
             mask = depth_silhouette(depth, crop.intrinsics, pose_world_camera, search)
         else:
-            rgb = torch.from_numpy(crop_image(colour_rgb, crop)).permute(2, 0, 1)[None]
-            logits = self.sketch_net(normalise_rgb(rgb.to(self.device)))["silhouette_logits"]
+            logits = self.sketches(colour_rgb, crop, sketch_cache)["silhouette_logits"]
             mask = (logits[0, 0] > 0).cpu().numpy()
         try:
             return fit_object_grid(

@@ -12,8 +12,10 @@ from models.camera import CameraIntrinsics, look_at_pose
 from models.geometry import VoxelGrid, axes_facing_camera
 from models.prior.auto import choose_prior, silhouette_agreement
 from models.prior.evaluation import extent_errors
-from models.prior.shape_prior import PriorPrediction
+from models.prior.networks import ShapeNet
+from models.prior.shape_prior import PriorPrediction, ShapePrior
 from models.prior.virtual_camera import grid_crop
+from models.procedural import make_shape
 from models.render import Scene, SceneObject, render
 from models.shapes import voxelize
 
@@ -82,3 +84,29 @@ def test_extent_errors_per_grid_axis() -> None:
     # Within a voxel (4 mm) on every axis: the grid's axes here are the world's up to sign.
     assert np.all(np.abs(errors) * np.array([0.10, 0.06, 0.12]) <= GRID.voxel_size_m + 1e-9)
     assert np.all(np.isnan(extent_errors(np.zeros((64, 64, 64)), GRID, box)))
+
+
+def test_priors_sharing_a_sketch_net_run_it_once_per_crop() -> None:
+    torch.manual_seed(0)
+    general = ShapePrior.untrained("cpu")
+    box = ShapePrior(
+        general.sketch_net, ShapeNet(general.preset), name="box", sketch_key=general.sketch_key
+    )
+    priors = {"general": general, "box": box}
+    rng = np.random.default_rng(0)
+    scene = Scene.bench(make_shape("can", rng), (0.75, 0.35, 0.25))
+    intrinsics = CameraIntrinsics.kinect_v2_colour(0.5)
+    image = render(scene, intrinsics, POSE).colour_rgb
+    passes: list[int] = []
+    general.sketch_net.register_forward_hook(lambda *_: passes.append(1))
+    alone = {name: prior.predict(image, intrinsics, POSE, GRID) for name, prior in priors.items()}
+    assert len(passes) == 2
+
+    passes.clear()
+    chosen, scores = choose_prior(priors, image, intrinsics, POSE, GRID)
+
+    assert len(passes) == 1  # both priors see the same crop through the same net
+    assert set(scores) == {"general", "box"}
+    np.testing.assert_array_equal(
+        chosen.probabilities, alone[chosen.prior].probabilities
+    )  # sharing changes nothing
