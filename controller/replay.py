@@ -25,7 +25,7 @@ from controller.perception.learned import make_perception
 from controller.perception.protocol import ShapeEstimate, TouchOutcome
 from controller.recording import REQUEST_FILE, SessionRecorder
 from controller.request import ExploreRequest, RequestError, parse_explore_request
-from controller.scoring import score_estimate
+from controller.scoring import object_size_cm, score_estimate
 from controller.session_files import (
     GELSIGHT_REFERENCE_FILE,
     SESSION_LOG_FILE,
@@ -169,6 +169,7 @@ def _run(
         "request": request.__dict__,
         "compute_s": round(compute_s, 3),
         "metrics": metrics,
+        "object_size_cm": object_size_cm(vision, estimate, truth),
     }
     source_object = _source_object(recorded.folder)
     if source_object is not None:

@@ -1,6 +1,7 @@
-"""Ground-truth scores of a session's shape estimates: only a simulated bench knows the true
+"""Scores of a session's shape estimates. Ground truth: only a simulated bench knows the true
 shape, so a session scores only when the devices share a ``SimWorld`` (a real robot's session
-has none and gets no scores, rather than scores against an object that is not there)."""
+has none and gets no scores, rather than scores against an object that is not there). The
+object's size is reported on every bench, with the truth's where it is known."""
 
 from __future__ import annotations
 
@@ -9,10 +10,12 @@ import logging
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+import numpy as np
 import trimesh
 
 from controller.perception.protocol import ShapeEstimate
 from controller.recording import SessionRecorder
+from models.geometry import extent_along_axes_m, occupied_extent_m
 from models.metrics import surfaces_metrics
 
 if TYPE_CHECKING:
@@ -75,3 +78,26 @@ def score_estimate(estimate: ShapeEstimate, true_mesh_world: trimesh.Trimesh) ->
     through the same extraction) against the truth."""
     scores = surfaces_metrics(estimate.surface_mesh(), true_mesh_world)
     return {name: float(getattr(scores, name)) for name in SCORES}
+
+
+def object_size_cm(
+    vision: ShapeEstimate | None,
+    final: ShapeEstimate | None,
+    true_mesh_world: trimesh.Trimesh | None = None,
+) -> dict[str, list[float] | None]:
+    """The object's extent (cm, 0.1 cm) along the estimate grid's axes (x horizontal toward the
+    camera, y horizontal, z up): from vision, after the touches and, when known, the truth's
+    along the same axes. An empty estimate's size is None."""
+
+    def size(estimate: ShapeEstimate | None) -> list[float] | None:
+        extent = (
+            None if estimate is None else occupied_extent_m(estimate.probabilities, estimate.grid)
+        )
+        return None if extent is None else np.round(100.0 * extent, 1).tolist()
+
+    sizes: dict[str, list[float] | None] = {"vision": size(vision), "final": size(final)}
+    reference = final or vision
+    if true_mesh_world is not None and reference is not None:
+        true = extent_along_axes_m(true_mesh_world.vertices, reference.grid.axes_world)
+        sizes["true"] = np.round(100.0 * true, 1).tolist()
+    return sizes

@@ -29,6 +29,7 @@ from controller.perception.protocol import Perception, ShapeEstimate
 from controller.recording import SessionRecorder
 from controller.recording_recovery import recover_interrupted_sessions
 from controller.request import ExploreRequest, RequestError, parse_explore_request
+from controller.scoring import object_size_cm
 from controller.session import ExplorationSession
 from controller.session_files import (
     SESSION_LOG_FILE,
@@ -225,8 +226,14 @@ class TouchshapeService:
                 await asyncio.to_thread(self._save_inputs, recorder.artifacts_dir)
                 summary = await session.run(self._abort)
                 summary["started"] = _iso_time(started)
-                if self.devices is not None and self.devices.world is not None:
+                world = self.devices.world if self.devices is not None else None
+                if world is not None:
                     summary["object"] = self.config.sim.object
+                summary["object_size_cm"] = object_size_cm(
+                    session.vision_estimate,
+                    session.estimate,
+                    world.object_mesh_world if world is not None else None,
+                )
                 self._last_done = summary["state"] == str(State.DONE)
                 if session.estimate is not None or session.bound is not None:
                     self._last_obstacles = session.obstacles()

@@ -215,6 +215,20 @@ class VoxelGrid:
         return self.voxel_to_world(grid)
 
 
+def occupied_extent_m(probabilities: ArrayLike, grid: VoxelGrid) -> FloatArray | None:
+    """Extent (metres) of the voxels with occupancy > 0.5 along the grid's axes (x, y, z), whole
+    voxels counted; None when no voxel is occupied."""
+    occupied = np.argwhere(np.asarray(probabilities) > 0.5)
+    if len(occupied) == 0:
+        return None
+    return (occupied.max(axis=0) - occupied.min(axis=0) + 1) * grid.voxel_size_m
+
+
+def extent_along_axes_m(points_world: ArrayLike, axes_world: ArrayLike) -> FloatArray:
+    """Extent (metres) of world points along each of ``axes_world``'s rows (unit vectors)."""
+    return np.ptp(np.asarray(points_world, dtype=float) @ np.asarray(axes_world).T, axis=0)
+
+
 def axes_facing_camera(
     camera_position_world: ArrayLike, object_point_world: ArrayLike = (0.0, 0.0, 0.0)
 ) -> tuple[tuple[float, float, float], ...]:

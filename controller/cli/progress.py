@@ -105,6 +105,9 @@ def print_summary(summary: dict[str, Any], out: TextIO | None = None) -> None:
     for metric, values in summary.get("metrics", {}).items():
         if values:
             rows.append((metric, " -> ".join(f"{v:.2f}" for v in (values[0], values[-1]))))
+    sizes = summary.get("object_size_cm")
+    if sizes:
+        rows.append(("size cm (x y z)", _sizes_text(sizes)))
     if "summary" in artifacts:
         rows.append(("folder", str(_parent(artifacts["summary"]))))
     for name in ("picture", "recording"):
@@ -115,6 +118,16 @@ def print_summary(summary: dict[str, Any], out: TextIO | None = None) -> None:
     width = max(len(name) for name, _ in rows)
     for name, value in rows:
         print(f"{name:<{width}}  {value}", file=out or sys.stdout)
+
+
+def _sizes_text(sizes: dict[str, Any]) -> str:
+    """'vision -> final (true ...)' of ``object_size_cm``, each as 'x x y x z'."""
+
+    def box(extent: list[float] | None) -> str:
+        return "empty" if extent is None else " x ".join(f"{v:.1f}" for v in extent)
+
+    text = f"{box(sizes.get('vision'))} -> {box(sizes.get('final'))}"
+    return text + (f" (true {box(sizes['true'])})" if "true" in sizes else "")
 
 
 def _parent(path: str) -> str:

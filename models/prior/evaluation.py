@@ -22,7 +22,14 @@ import trimesh
 
 from models.camera import CameraIntrinsics
 from models.families import SHAPE_GROUPS
-from models.geometry import VoxelGrid, axes_facing_camera, make_transform, rotation_about_axis
+from models.geometry import (
+    VoxelGrid,
+    axes_facing_camera,
+    extent_along_axes_m,
+    make_transform,
+    occupied_extent_m,
+    rotation_about_axis,
+)
 from models.metrics import mesh_metrics, voxel_iou
 from models.prior.auto import AUTO, choose_prior
 from models.prior.dataset import EVAL_SEED_START, generated_shape, shape_rngs
@@ -79,12 +86,10 @@ def extent_errors(
 ) -> np.ndarray:
     """Relative error of the predicted occupancy's extent along each grid axis (x, y, z) against
     the true mesh's (NaN for an empty prediction)."""
-    occupied = np.argwhere(probabilities > 0.5)
-    if len(occupied) == 0:
+    predicted = occupied_extent_m(probabilities, grid)
+    if predicted is None:
         return np.full(3, np.nan)
-    predicted = (occupied.max(axis=0) - occupied.min(axis=0) + 1) * grid.voxel_size_m
-    axes = np.asarray(grid.axes_world)
-    true = np.ptp(np.asarray(mesh_world.vertices) @ axes.T, axis=0)
+    true = extent_along_axes_m(mesh_world.vertices, grid.axes_world)
     return (predicted - true) / true
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import io
 
-from controller.cli.progress import TouchProgress
+from controller.cli.progress import TouchProgress, print_summary
 
 
 def _touch(number: int, points: int = 100) -> dict:
@@ -40,3 +40,19 @@ def test_without_scores_a_touch_prints_at_once() -> None:
     progress("state", {"state": "select", "previous": "reconstruct"})
     progress("touch", _touch(1))
     assert out.getvalue().splitlines()[1].startswith("touch  1/10  touched   contact yes")
+
+
+def test_the_summary_shows_the_object_size_vision_final_and_true() -> None:
+    summary = {
+        "session": "s",
+        "state": "done",
+        "touches": 2,
+        "contacts": 1,
+        "compute_s": 1.0,
+        "motion_s": 9.0,
+        "object_size_cm": {"vision": [7.9, 11.0, 9.4], "final": None, "true": [8.0, 11.6, 9.5]},
+    }
+    out = io.StringIO()
+    print_summary(summary, out)
+    (row,) = [line for line in out.getvalue().splitlines() if line.startswith("size cm (x y z)")]
+    assert row.split(maxsplit=5)[-1] == "7.9 x 11.0 x 9.4 -> empty (true 8.0 x 11.6 x 9.5)"
