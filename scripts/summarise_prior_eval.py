@@ -40,6 +40,33 @@ def set_means(results: dict) -> dict[str, dict[str, float]]:
     return means
 
 
+def auto_choices(set_name: str, auto: dict, results: dict[str, dict[str, dict]]) -> str:
+    """How often ``auto`` chose each prior, how often it chose the one of best IoU on that
+    view (among the single priors evaluated on the same views), and the IoU of always choosing
+    best (the oracle)."""
+    views = [v for o in auto["objects"] for v in o.get("views", [])]
+    chosen = Counter(v["prior"] for v in views)
+    text = "chose " + ", ".join(f"{p} {n}" for p, n in sorted(chosen.items()))
+    singles = {
+        p: [v["iou"] for o in sets[set_name]["objects"] for v in o.get("views", [])]
+        for p, sets in results.items()
+        if p != "auto" and set_name in sets
+    }
+    singles = {p: ious for p, ious in singles.items() if len(ious) == len(views)}
+    if not views or not singles:
+        return text
+    best = [max(singles, key=lambda p: singles[p][i]) for i in range(len(views))]
+    right = sum(
+        v["prior"] in singles and singles[v["prior"]][i] >= singles[best[i]][i]
+        for i, v in enumerate(views)
+    )
+    oracle = sum(singles[best[i]][i] for i in range(len(views))) / len(views)
+    return (
+        f"{text}; the best single prior of the view {right}/{len(views)} times; "
+        f"IoU {sum(v['iou'] for v in views) / len(views):.3f} vs oracle {oracle:.3f}"
+    )
+
+
 def main(folder: Path) -> None:
     results: dict[str, dict[str, dict]] = {}
     for path in sorted(folder.glob("*.*.json")):
@@ -69,8 +96,7 @@ def main(folder: Path) -> None:
     if "auto" in results:
         print()
         for set_name, result in results["auto"].items():
-            chosen = Counter(p for o in result["objects"] for p in o.get("priors_chosen", []))
-            print(f"auto on {set_name}: chose " + ", ".join(f"{p} {n}" for p, n in chosen.items()))
+            print(f"auto on {set_name}: " + auto_choices(set_name, result, results))
         singles = {p: v for p, v in overall.items() if p != "auto"}
         if singles:
             best = max(singles, key=lambda p: singles[p])

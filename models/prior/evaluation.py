@@ -173,6 +173,16 @@ def evaluate_prior(
             _median([v["extent_error_xyz"][axis] for v in per_view]) for axis in range(3)
         ]
         row["priors_chosen"] = sorted({v["prior"] for v in per_view})
+        # Per view (the same views for every prior: they depend on the seed and the object
+        # only), so the automatic choice can be checked against each single prior's.
+        row["views"] = [
+            {
+                "prior": v["prior"],
+                "iou": round(v["iou"], 4),
+                "chamfer_mm": round(v["chamfer_mm"], 2) if math.isfinite(v["chamfer_mm"]) else None,
+            }
+            for v in per_view
+        ]
         row["empty_views"] = int(sum(math.isnan(v["chamfer_mm"]) for v in per_view))
         rows.append(row)
     bar.close()

@@ -234,6 +234,13 @@ def test_eval_prior_command_on_a_user_mesh_file(tmp_path: Path) -> None:
     assert row["priors_chosen"] == ["general"] and len(row["extent_error_xyz"]) == 3
     assert {"fscore_2mm", "fscore_5mm", "size_error"} <= set(row)
     assert "size_error_median" in result["mean"]
+    assert row["views"] == [
+        {
+            "prior": "general",
+            "iou": round(row["iou"], 4),
+            "chamfer_mm": row["views"][0]["chamfer_mm"],
+        }
+    ]
 
 
 def test_object_frame_prior_decodes_in_the_grid_fitted_to_the_object(bench_frame) -> None:
