@@ -15,6 +15,7 @@ import sys
 from collections import Counter
 from pathlib import Path
 
+from models.prior.evaluation import summarise_rows
 from models.procedural import CATEGORIES
 
 SETS = ("procedural", "categories", "families", "small", "real")
@@ -29,14 +30,7 @@ def set_means(results: dict) -> dict[str, dict[str, float]]:
         if name == "procedural":
             objects = [o for o in result["objects"] if o["category"] in CATEGORIES]
             if objects:
-                means["categories"] = {
-                    key: sum(o[key] for o in objects if o.get(key) is not None)
-                    / max(1, sum(o.get(key) is not None for o in objects))
-                    for key in ("iou", "chamfer_mm", "fscore_5mm", "size_error")
-                }
-                means["categories"]["size_error_median"] = sorted(o["size_error"] for o in objects)[
-                    len(objects) // 2
-                ]
+                means["categories"] = summarise_rows(objects)
     return means
 
 

@@ -187,7 +187,7 @@ def evaluate_prior(
         rows.append(row)
     bar.close()
     per_category = {
-        category: _summary([r for r in rows if r["category"] == category])
+        category: summarise_rows([r for r in rows if r["category"] == category])
         for category in dict.fromkeys(r["category"] for r in rows)
     }
     return {
@@ -199,7 +199,7 @@ def evaluate_prior(
         "null where every view's prediction was empty (empty_views counts them)",
         "objects": rows,
         "per_category": per_category,
-        "mean": _summary(rows),
+        "mean": summarise_rows(rows),
     }
 
 
@@ -218,7 +218,8 @@ def _mean(values: Sequence[float]) -> float | None:
     return float(np.mean(finite)) if finite else None
 
 
-def _summary(rows: Sequence[dict]) -> dict:
+def summarise_rows(rows: Sequence[dict]) -> dict:
+    """Mean scores, median size error and counts of per-object rows."""
     summary: dict = {key: _mean([r[key] for r in rows]) for key in SCORES}
     summary["size_error_median"] = _median([r["size_error"] for r in rows])
     summary["objects"] = len(rows)

@@ -168,12 +168,15 @@ def _mix_predicted_sketches(
 ) -> Tensor:
     """``inputs`` with the sketch net's prediction (frozen) in place of the true sketches for a
     ``probability`` fraction of the samples."""
-    use = torch.rand(inputs.shape[0], 1, 1, 1, generator=generator) < probability
+    use = torch.rand(inputs.shape[0], generator=generator) < probability
     if not bool(use.any()):
         return inputs
+    chosen = use.nonzero().squeeze(1).to(inputs.device)
+    # Only the chosen samples go through the sketch net (eval mode: each sample's prediction
+    # does not depend on the others in the batch).
     with torch.no_grad():
-        predicted = predicted_shape_input(sketch_net(normalise_rgb(batch["rgb"])))
-    return torch.where(use.to(inputs.device), predicted, inputs)
+        predicted = predicted_shape_input(sketch_net(normalise_rgb(batch["rgb"][chosen])))
+    return inputs.index_copy(0, chosen, predicted)
 
 
 def _collate(samples: list[dict[str, Tensor]]) -> dict[str, Tensor]:
