@@ -114,9 +114,11 @@ async def test_stop_ends_a_move_early(world, gel) -> None:
     gripper = await homed_gripper(world, gel)
     await gripper.move(0.0, speed_m_s=0.1, force_limit_n=80.0, timeout_s=5)
     move = asyncio.create_task(gripper.move(0.1, speed_m_s=0.01, force_limit_n=80, timeout_s=20))
-    async with asyncio.timeout(30):  # planned in a worker thread, then moving
+    # Planned in a worker thread, then moving. The wait sleeps rather than spinning on
+    # sleep(0): a spinning loop keeps the GIL from that worker thread and the move crawls.
+    async with asyncio.timeout(30):
         while world.gripper_width_m == 0.0:
-            await asyncio.sleep(0)
+            await asyncio.sleep(0.0005)
     await gripper.stop()
     state = await move
     assert 0.0 < state.width_m < 0.1 and not state.is_moving
