@@ -165,11 +165,13 @@ async def test_wsg_session_against_the_emulator_in_its_own_process() -> None:
             GripperConfig(type="wsg50_tcp", host=host, tcp_port=int(port), max_state_age_s=1.0)
         )
 
+        # Generous move timeouts: the niced emulator may get little CPU on a loaded machine,
+        # and this test measures the driver's loop lag, not the emulator's speed.
         async def session() -> None:
             await gripper.connect()
             await gripper.home()
-            await gripper.move(0.015, speed_m_s=0.05, force_limit_n=5.0, timeout_s=5.0)
-            state = await gripper.move(0.03, speed_m_s=0.01, force_limit_n=5.0, timeout_s=5.0)
+            await gripper.move(0.015, speed_m_s=0.05, force_limit_n=5.0, timeout_s=30.0)
+            state = await gripper.move(0.03, speed_m_s=0.01, force_limit_n=5.0, timeout_s=30.0)
             assert state.blocked
             await gripper.close()
 
