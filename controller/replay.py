@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from controller.perception.learned import make_perception
-from controller.perception.protocol import ShapeEstimate, TouchOutcome
+from controller.perception.protocol import ShapeEstimate, TouchOutcome, contact_counts
 from controller.recording import REQUEST_FILE, SessionRecorder
 from controller.request import ExploreRequest, RequestError, parse_explore_request
 from controller.scoring import object_size_cm, score_estimate
@@ -163,7 +163,7 @@ def _run(
         "session": session_id,
         "state": "done",
         "touches": len(recorded.touches),
-        "contacts": sum(o.measurement.contact for o in outcomes),
+        **contact_counts(outcomes),
         "error": None,
         "stop_reason": f"replayed the {len(recorded.touches)} recorded touches",
         "request": request.__dict__,

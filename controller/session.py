@@ -32,6 +32,7 @@ from controller.perception.protocol import (
     TouchMeasurement,
     TouchOutcome,
     TouchTarget,
+    contact_counts,
 )
 from controller.recording import SessionRecorder
 from controller.request import ExploreRequest
@@ -555,7 +556,7 @@ class ExplorationSession:
             "session": self.session_id,
             "state": str(self.state),
             "touches": self.touch_count,
-            "contacts": sum(o.measurement.contact for o in self.outcomes),
+            **contact_counts(self.outcomes),
             "error": self.error,
             "stop_reason": self.stop_reason,
             "skipped_targets": self.skipped,

@@ -94,7 +94,7 @@ def print_summary(summary: dict[str, Any], out: TextIO | None = None) -> None:
     rows = [
         ("session", summary["session"]),
         ("result", summary["state"] + (f" ({summary['error']})" if summary.get("error") else "")),
-        ("touches", f"{summary['touches']} ({summary['contacts']} contacts)"),
+        ("touches", _touches_row(summary)),
     ]
     if "replay_of" in summary:
         rows.append(("replay of", summary["replay_of"]))
@@ -132,3 +132,10 @@ def _sizes_text(sizes: dict[str, Any]) -> str:
 
 def _parent(path: str) -> str:
     return str(Path(path).parent) + "/"
+
+
+def _touches_row(summary: dict[str, Any]) -> str:
+    """``10 (10 contacts, 4 without an imprint)``; older summaries lack the imprint count."""
+    row = f"{summary['touches']} ({summary['contacts']} contacts"
+    blind = summary.get("contacts_without_imprint", 0)
+    return row + (f", {blind} without an imprint)" if blind else ")")

@@ -5,7 +5,7 @@ it with the shape prior, the GelSight reconstruction, the touch constraints and 
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -114,6 +114,17 @@ class TouchOutcome:
     def contact_point_world(self) -> FloatArray | None:
         points = self.contact_points_world
         return points.mean(axis=0) if len(points) else None
+
+
+def contact_counts(outcomes: Sequence[TouchOutcome]) -> dict[str, int]:
+    """How many touches met the object (the gripper stalled), and how many of those left no
+    imprint on the gel: a rigid part of the tool (the gel window's frame, the finger) met
+    the object first, so the touch gives free space but no contact points."""
+    contacts = [o for o in outcomes if o.measurement.contact]
+    return {
+        "contacts": len(contacts),
+        "contacts_without_imprint": sum(len(o.contact_points_world) == 0 for o in contacts),
+    }
 
 
 class Perception(Protocol):

@@ -4,8 +4,12 @@ scores estimates (scores come from the background, maybe late or out of order)."
 from __future__ import annotations
 
 import io
+from types import SimpleNamespace
+
+import numpy as np
 
 from controller.cli.progress import TouchProgress, print_summary
+from controller.perception.protocol import contact_counts
 
 
 def _touch(number: int, points: int = 100) -> dict:
@@ -56,3 +60,26 @@ def test_the_summary_shows_the_object_size_vision_final_and_true() -> None:
     print_summary(summary, out)
     (row,) = [line for line in out.getvalue().splitlines() if line.startswith("size cm (x y z)")]
     assert row.split(maxsplit=5)[-1] == "7.9 x 11.0 x 9.4 -> empty (true 8.0 x 11.6 x 9.5)"
+
+
+def _outcome(contact: bool, points: int) -> SimpleNamespace:
+    return SimpleNamespace(
+        measurement=SimpleNamespace(contact=contact), contact_points_world=np.zeros((points, 3))
+    )
+
+
+def test_contacts_that_left_no_imprint_are_counted_and_shown() -> None:
+    outcomes = [_outcome(True, 300), _outcome(True, 0), _outcome(False, 0), _outcome(True, 0)]
+    counts = contact_counts(outcomes)
+    assert counts == {"contacts": 3, "contacts_without_imprint": 2}
+    summary = {"session": "s", "state": "done", "touches": 4, **counts}
+    summary |= {"compute_s": 1.0, "motion_s": 9.0}
+    out = io.StringIO()
+    print_summary(summary, out)
+    (row,) = [line for line in out.getvalue().splitlines() if line.startswith("touches")]
+    assert row.split(maxsplit=1)[1] == "4 (3 contacts, 2 without an imprint)"
+    summary |= contact_counts(outcomes[:1])  # every contact with an imprint: nothing to add
+    out = io.StringIO()
+    print_summary(summary, out)
+    (row,) = [line for line in out.getvalue().splitlines() if line.startswith("touches")]
+    assert row.split(maxsplit=1)[1] == "4 (1 contacts)"
