@@ -136,6 +136,7 @@ def _parent(path: str) -> str:
 
 def _touches_row(summary: dict[str, Any]) -> str:
     """``10 (10 contacts, 4 without an imprint)``; older summaries lack the imprint count."""
-    row = f"{summary['touches']} ({summary['contacts']} contacts"
+    contacts = summary["contacts"]
+    row = f"{summary['touches']} ({contacts} contact{'' if contacts == 1 else 's'}"
     blind = summary.get("contacts_without_imprint", 0)
     return row + (f", {blind} without an imprint)" if blind else ")")

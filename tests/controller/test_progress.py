@@ -82,4 +82,4 @@ def test_contacts_that_left_no_imprint_are_counted_and_shown() -> None:
     out = io.StringIO()
     print_summary(summary, out)
     (row,) = [line for line in out.getvalue().splitlines() if line.startswith("touches")]
-    assert row.split(maxsplit=1)[1] == "4 (1 contacts)"
+    assert row.split(maxsplit=1)[1] == "4 (1 contact)"
