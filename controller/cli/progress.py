@@ -138,5 +138,5 @@ def _touches_row(summary: dict[str, Any]) -> str:
     """``10 (10 contacts, 4 without an imprint)``; older summaries lack the imprint count."""
     contacts = summary["contacts"]
     row = f"{summary['touches']} ({contacts} contact{'' if contacts == 1 else 's'}"
-    blind = summary.get("contacts_without_imprint", 0)
-    return row + (f", {blind} without an imprint)" if blind else ")")
+    without_imprint = summary.get("contacts_without_imprint", 0)
+    return row + (f", {without_imprint} without an imprint)" if without_imprint else ")")
