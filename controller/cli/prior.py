@@ -91,6 +91,16 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
             default=None,
             help="stop after this much training time (resume continues)",
         )
+        parser.add_argument(
+            "--checkpoint",
+            type=Path,
+            default=None,
+            help="the run's float16 checkpoint, resumed from when it exists (default: "
+            "OUT/checkpoint.pt; the object-frame recipe keeps it in training_state/)",
+        )
+        parser.add_argument(
+            "--checkpoint-every", type=int, default=200, help="steps between checkpoints"
+        )
         parser.add_argument("--seed", type=int, default=0)
         parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
         parser.add_argument("--init", default=None, help="start from these weights (.pt)")
@@ -243,6 +253,8 @@ def train_network(args: argparse.Namespace) -> int:
         lr_decay_epochs=tuple(args.lr_decay_epochs),
         lr_decay_factor=args.lr_decay_factor,
         max_minutes=args.max_minutes,
+        checkpoint=None if args.checkpoint is None else str(args.checkpoint),
+        checkpoint_every_steps=args.checkpoint_every,
         seed=args.seed,
         init_weights=args.init,
         sketch_weights=getattr(args, "sketch_weights", None),

@@ -8,9 +8,11 @@
   the RGB-D mode sees what it was trained on. Validation also runs on *predicted* sketches when a
   sketch checkpoint is given.
 
-Checkpoints (``checkpoint.pt``) are written every ``checkpoint_minutes`` and at the end; a run
-resumes from one mid-epoch, bit-exact: the epoch's sample order is a function of seed and epoch,
-a batch's random draws of seed and step, the learning rate of the epoch. Metrics go
+Checkpoints (float16, ``models/prior/training_state.py``; ``checkpoint.pt`` in the run's folder
+unless ``checkpoint`` names another file) are written every ``checkpoint_every_steps`` steps and
+at epoch ends; a run resumes from one mid-epoch, bit-exact: the epoch's sample order is a
+function of seed and epoch, a batch's random draws of seed and step, the learning rate of the
+epoch, and the live run is rounded to the checkpoint's numbers when it writes one. Metrics go
 to ``metrics.jsonl``. With ``torchrun`` (``WORLD_SIZE`` > 1) it trains with
 DistributedDataParallel: NCCL on GPUs, gloo on CPU; each rank takes every WORLD_SIZE-th sample.
 """
@@ -40,6 +42,7 @@ from models.prior.networks import (
     normalise_rgb,
     shape_input,
 )
+from models.prior.training_state import encode_state, load_state, round_to_stored, save_state
 
 log = logging.getLogger(__name__)
 
@@ -64,9 +67,12 @@ class TrainConfig:
     uses the same rate."""
     lr_decay_factor: float = 0.1
     max_minutes: float | None = None
-    """Stop (with a checkpoint) after this many minutes of training steps (data loading
-    included, validation not); a resumed run counts on from its checkpoint."""
-    checkpoint_minutes: float = 5.0
+    """Stop after this many minutes of training steps (data loading included, validation not),
+    at the next checkpoint; a resumed run counts on from its checkpoint."""
+    checkpoint_every_steps: int = 200
+    checkpoint: str | None = None
+    """The run's checkpoint file (None: ``checkpoint.pt`` in ``out_dir``); resumed from when it
+    exists. The object-frame recipe keeps it in the committed ``training_state/``."""
     val_fraction: float = 0.05
     seed: int = 0
     init_weights: str | None = None
@@ -252,6 +258,13 @@ class _Distributed:
             dist.destroy_process_group()
 
 
+def _move_optimizer_state(optimizer: torch.optim.Optimizer, device: torch.device) -> None:
+    for slot in optimizer.state.values():
+        for key, value in slot.items():
+            if isinstance(value, Tensor) and key != "step":
+                slot[key] = value.to(device)
+
+
 def _has_search_crops(data_dir: str | Path) -> bool:
     manifest = json.loads((Path(data_dir) / "manifest.json").read_text())
     return manifest["recipe"]["recipe"].get("frame", "fixed") == "object"
@@ -275,14 +288,22 @@ def train(config: TrainConfig, *, progress: bool = True) -> dict:
     val_idx = val_idx[: config.max_val_samples]
 
     model = build_model(config.stage, config.preset)
-    if config.init_weights:
+    checkpoint = Path(config.checkpoint) if config.checkpoint else out_dir / "checkpoint.pt"
+    optimizer = paper_optimizer(config.stage, model, config.learning_rate)
+    epoch, batch_in_epoch, step, trained_s = 0, 0, 0, 0.0
+    if checkpoint.exists():  # before DDP wraps the model; the initial weights are not needed
+        progress_state = load_state(checkpoint, model, optimizer)
+        epoch, batch_in_epoch = progress_state["epoch"], progress_state["batch_in_epoch"]
+        step, trained_s = progress_state["step"], progress_state["trained_s"]
+        log.info("resumed from %s at epoch %d batch %d", checkpoint, epoch, batch_in_epoch)
+    elif config.init_weights:
         load_weights(model, config.init_weights)
     model.to(env.device)
+    _move_optimizer_state(optimizer, env.device)
     if env.world > 1:
         if env.device.type == "cuda":
             model = nn.SyncBatchNorm.convert_sync_batchnorm(model)
         model = nn.parallel.DistributedDataParallel(model)
-    optimizer = paper_optimizer(config.stage, model, config.learning_rate)
     augment = colour_light_jitter().to(env.device) if config.augment else None
     sketch_net = None
     if config.predicted_sketch_prob > 0 and not (config.stage == "shape" and config.sketch_weights):
@@ -292,33 +313,24 @@ def train(config: TrainConfig, *, progress: bool = True) -> dict:
         load_weights(sketch_net, config.sketch_weights)
         sketch_net.to(env.device).eval()
 
-    checkpoint = out_dir / "checkpoint.pt"
-    epoch, batch_in_epoch, step, trained_s = 0, 0, 0, 0.0
-    if checkpoint.exists():
-        state = torch.load(checkpoint, map_location=env.device, weights_only=False)
-        (model.module if env.world > 1 else model).load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        epoch, batch_in_epoch = state["epoch"], state["batch_in_epoch"]
-        step, trained_s = state["step"], state["trained_s"]
-        log.info("resumed from %s at epoch %d batch %d", checkpoint, epoch, batch_in_epoch)
     metrics_file = out_dir / "metrics.jsonl"
     if env.main:
         write_json_atomically(out_dir / "config.json", asdict(config))
 
-    def save_checkpoint() -> None:
+    def save_checkpoint(finished: bool = False) -> None:
+        """Round the live run to the float16 numbers the file holds, then write it (main rank)."""
+        core = model.module if env.world > 1 else model
+        round_to_stored(core, optimizer)
         if not env.main:
             return
-        core = model.module if env.world > 1 else model
-        snapshot = {
-            "model": core.state_dict(),
-            "optimizer": optimizer.state_dict(),
+        progress_state = {
             "epoch": epoch,
             "batch_in_epoch": batch_in_epoch,
             "step": step,
             "trained_s": trained_s,
             "config": asdict(config),
         }
-        write_atomically(checkpoint, lambda temporary: torch.save(snapshot, temporary))
+        save_state(checkpoint, encode_state(core, None if finished else optimizer, progress_state))
 
     def write(record: dict) -> None:
         if env.main:
@@ -326,7 +338,6 @@ def train(config: TrainConfig, *, progress: bool = True) -> dict:
                 handle.write(json.dumps(record) + "\n")
 
     budget_s = None if config.max_minutes is None else 60.0 * config.max_minutes
-    last_checkpoint = time.monotonic()
     validation: dict = {}
     stopped = False
     while epoch < config.epochs and not stopped:
@@ -389,15 +400,17 @@ def train(config: TrainConfig, *, progress: bool = True) -> dict:
                         "trained_s": round(trained_s, 1),
                     }
                 )
-            if budget_s is not None and trained_s >= budget_s:
-                stopped = True
-                break
-            if time.monotonic() - last_checkpoint > 60.0 * config.checkpoint_minutes:
+            if step % config.checkpoint_every_steps == 0:
+                # Only here (and at epoch ends) may a run stop: every run, stopped or not, is
+                # rounded to float16 at the same steps.
                 save_checkpoint()
-                last_checkpoint = time.monotonic()
+                if budget_s is not None and trained_s >= budget_s:
+                    stopped = True
+                    break
         bar.close()
         if not stopped:
             epoch, batch_in_epoch = epoch + 1, 0
+            save_checkpoint(finished=epoch >= config.epochs)
         validation = evaluate(model, config, dataset, val_idx, env.device, sketch_net)
         validation = {k: env.mean(v) for k, v in validation.items()}
         write(
@@ -410,8 +423,7 @@ def train(config: TrainConfig, *, progress: bool = True) -> dict:
             }
         )
         log.info("epoch %d step %d: %s", epoch, step, validation)
-        save_checkpoint()
-        last_checkpoint = time.monotonic()
+        stopped = stopped or (budget_s is not None and trained_s >= budget_s)
     if env.main:
         save_weights(model, config.stage, config.preset, out_dir / f"{config.stage}.pt")
     env.close()

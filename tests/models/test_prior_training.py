@@ -26,6 +26,7 @@ from models.prior.training import (
     sketch_loss,
     train,
 )
+from models.prior.training_state import TrainingStateError
 
 TINY_PRESET = NetworkPreset("tiny", 64, 16, 8, (16, 16, 8, 8, 8), (16, 8))
 
@@ -127,26 +128,55 @@ def test_train_writes_metrics_weights_and_resumes(tiny_data: Path, tmp_path: Pat
 
 @pytest.mark.parametrize("stage", ["sketch", "shape"])
 def test_a_resumed_run_trains_bit_exact(tiny_data: Path, tmp_path: Path, stage: str) -> None:
-    """Stopped after its first batch and resumed from the checkpoint, a run ends with the same
-    weights as one never stopped: the next batch sees the same samples, jitter and noise."""
-    common: dict = {"preset": "tiny", "epochs": 2, "batch_size": 2, "val_fraction": 0.3}
+    """Stopped after its first batch and resumed from the float16 checkpoint on another machine
+    (a fresh run folder, the committed state file only), a run ends with the same weights as
+    one never stopped: the next batch sees the same samples, jitter and noise, and the live run
+    holds the checkpoint's numbers."""
+    common: dict = {
+        "preset": "tiny",
+        "epochs": 2,
+        "batch_size": 2,
+        "val_fraction": 0.3,
+        "checkpoint_every_steps": 1,
+    }
     if stage == "shape":  # half the samples from a sketch net's predictions: drawn per step too
         save_weights(SketchNet(TINY_PRESET), "sketch", "tiny", tmp_path / "sketch.pt")
         common |= {"sketch_weights": str(tmp_path / "sketch.pt"), "predicted_sketch_prob": 0.5}
     whole = TrainConfig(stage, str(tiny_data), str(tmp_path / "whole"), **common)
     train(whole, progress=False)
-    parted = TrainConfig(stage, str(tiny_data), str(tmp_path / "parted"), **common)
-    train(TrainConfig(**{**parted.__dict__, "max_minutes": 1e-9}), progress=False)
-    stopped = torch.load(tmp_path / "parted" / "checkpoint.pt", weights_only=False)
+    state = tmp_path / "training_state" / f"{stage}.pt"
+    first_machine = TrainConfig(
+        stage, str(tiny_data), str(tmp_path / "first"), checkpoint=str(state), **common
+    )
+    train(TrainConfig(**{**first_machine.__dict__, "max_minutes": 1e-9}), progress=False)
+    stopped = torch.load(state, weights_only=False)
     assert (stopped["epoch"], stopped["batch_in_epoch"], stopped["step"]) == (0, 1, 1)
-    train(parted, progress=False)
-    ends = [
-        torch.load(tmp_path / run / "checkpoint.pt", weights_only=False)
-        for run in ("whole", "parted")
+    floats = [t for t in stopped["model"].values() if t.is_floating_point()]
+    floats += [
+        t
+        for slot in stopped["optimizer"]["state"].values()
+        for key, t in slot.items()
+        if key != "step" and t.is_floating_point()
     ]
+    assert floats and all(t.dtype == torch.float16 for t in floats)
+    second_machine = TrainConfig(**{**first_machine.__dict__, "out_dir": str(tmp_path / "next")})
+    train(second_machine, progress=False)
+    ends = [torch.load(f, weights_only=False) for f in (tmp_path / "whole/checkpoint.pt", state)]
     assert ends[0]["step"] == ends[1]["step"] > 2
+    assert ends[1]["optimizer"] is None  # a finished run keeps its model only
     for name, tensor in ends[0]["model"].items():
         assert torch.equal(tensor, ends[1]["model"][name]), name
+
+
+def test_a_corrupt_checkpoint_is_refused_naming_the_file(tiny_data: Path, tmp_path: Path) -> None:
+    state = tmp_path / "shape.pt"
+    state.write_bytes(b"not a checkpoint")
+    config = TrainConfig(
+        "shape", str(tiny_data), str(tmp_path / "run"), preset="tiny", checkpoint=str(state)
+    )
+    with pytest.raises(TrainingStateError, match=r"shape\.pt: not a usable training checkpoint"):
+        train(config, progress=False)
+    assert state.read_bytes() == b"not a checkpoint"  # left as it was for the user to look at
 
 
 def test_the_learning_rate_decays_by_epoch() -> None:
