@@ -86,6 +86,12 @@ class LimitsConfig:
     first reading above the gripper's noise. On a face tilted to the pad, or an edge meeting
     the gel near its rim, the force grows slowly, and the rigid window behind the gel must not
     reach the object before a reading shows it; the arm moves 0.5 mm between readings."""
+    unexpected_force_n: float = 15.0
+    """On an approach, a TCP force this far above the reading at the approach's start, and
+    above what the gel's finger feels, is a rigid part meeting the object: the arm stops and
+    backs out along the approach line, and the target is dropped. Above the TCP force
+    estimate's noise (a few newtons on an e-Series' sensor; raise it for a CB3, whose estimate
+    from the joint currents is coarser) and well below a UR's protective-stop force."""
     table_clearance_m: float = 0.01
     shape_clearance_m: float = 0.01
 
@@ -106,6 +112,7 @@ class LimitsConfig:
             "max_force_n",
             "contact_force_n",
             "approach_contact_force_n",
+            "unexpected_force_n",
             "table_clearance_m",
             "shape_clearance_m",
         )

@@ -109,7 +109,7 @@ class ServiceApi:
         ]
         self._publishers = {
             name: session.declare_publisher(f"{self.prefix}/{name}")
-            for name in ("state", "touch", "score", "shape", "result")
+            for name in ("state", "touch", "event", "score", "shape", "result")
         }
         self._token = session.liveliness().declare_token(f"{self.prefix}/alive")
 

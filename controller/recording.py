@@ -214,6 +214,11 @@ class SessionRecorder:
         level = "ERROR" if state == "fault" else "INFO"
         self._log("log", rr.TextLog(text, level=level))
 
+    def log_event(self, text: str) -> None:
+        """A safety event the session recovered from (a warning in the log)."""
+        self._now()
+        self._log("log", rr.TextLog(text, level="WARN"))
+
     def log_camera(self, frame: RGBDFrame) -> None:
         self._now()
         pose = frame.pose_world_camera

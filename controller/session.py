@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from controller.config import Config
-from controller.motion.executor import HomeError, MotionExecutor
+from controller.motion.executor import HomeError, MotionExecutor, UnexpectedForceError
 from controller.motion.planner import MotionPlanner, TouchGeometry, home_pose_world_tcp
 from controller.motion.safety import (
     POSSIBLE_OCCUPANCY,
@@ -158,6 +158,8 @@ class ExplorationSession:
         self._refused_in_a_row = 0
         self.skipped: list[dict[str, Any]] = []
         """Targets not touched because no safe motion reaches them, with the reason."""
+        self.unexpected_forces: list[dict[str, Any]] = []
+        """Approaches stopped by a force the gel did not explain (``UnexpectedForceError``)."""
 
     # --- the loop -------------------------------------------------------------------------------
 
@@ -394,9 +396,37 @@ class ExplorationSession:
             came_from.append(waypoint.pose_world_tcp)
         # The approach start is left after the touch: the way here is known to be clear.
         self._came_from = came_from[:-1] if waypoints else self._came_from
-        if await self.motion.move_until_contact(touch_plan.approach):
+        try:
+            touched = await self.motion.move_until_contact(touch_plan.approach)
+        except UnexpectedForceError as error:
+            return await self._unexpected_force(target, error)
+        if touched:
             log.info("the pad touched on the approach: the surface is nearer than estimated")
         return State.TOUCH
+
+    async def _unexpected_force(self, target: TouchTarget, error: UnexpectedForceError) -> State:
+        """A rigid part met the object on the approach: back out along the approach line to
+        its start, record the event, drop the target and go on (a failed retreat is a fault)."""
+        log.warning("session %s: %s; backing out", self.session_id, error)
+        failure = await self.motion.make_safe(self.obstacles(), lift=False)
+        if failure is not None:
+            raise SessionFault(f"{error}; {failure}")
+        arm = await self._device(self.devices.arm.state())
+        event = {
+            "touch": self.touch_count + 1,
+            "target_world": np.round(target.target_world, 4).tolist(),
+            "direction_world": np.round(target.direction_world, 4).tolist(),
+            "tcp_force_rise_n": round(error.force_n, 2),
+            "finger_force_n": round(error.finger_force_n, 2),
+            "travelled_m": round(error.travelled_m, 4),
+            "backed_out_to_world": np.round(self.pose_world_tcp(arm)[:3, 3], 4).tolist(),
+        }
+        self.unexpected_forces.append(event)
+        self.recorder.log_event(f"{error}; backed out, target dropped")
+        self.publish("event", {"session": self.session_id, "unexpected_force": event})
+        self._rejected.append(target.target_world)
+        self._skip(target, str(error), "approach")
+        return State.SELECT
 
     async def _touch_step(self) -> State:
         assert self._touch is not None and self._target is not None
@@ -560,6 +590,7 @@ class ExplorationSession:
             "error": self.error,
             "stop_reason": self.stop_reason,
             "skipped_targets": self.skipped,
+            "unexpected_forces": self.unexpected_forces,
             "request": self.request.__dict__,
             "compute_s": round(self.times.compute_s, 3),
             "motion_s": round(self.times.motion_s, 3),

@@ -9,7 +9,7 @@ loop (real backends use threads or processes).
 from __future__ import annotations
 
 import abc
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -89,6 +89,10 @@ class ArmState:
     is_moving: bool
     protective_stopped: bool
     timestamp_s: float
+    tcp_wrench_base: NDArray[np.float64] = field(default_factory=lambda: np.zeros(6))
+    """Force (N) and torque (N m) at the TCP in the base frame, as the UR reports it
+    (``getActualTCPForce``): what the tool meets. On a CB3 it is estimated from the joint
+    currents, with an offset that drifts: compare it with a reading taken just before."""
 
 
 @dataclass(frozen=True)

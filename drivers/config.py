@@ -284,9 +284,22 @@ class SimConfig:
     """0 = motions complete instantly (tests), 1 = real time (demos)."""
     table_size_m: tuple[float, float] = (1.2, 0.8)
     object_albedo_rgb: Vec3 = (0.75, 0.35, 0.25)
+    contact_stiffness_n_per_m: float = 10_000.0
+    """A rigid tool part pressed into the object or the table by d pushes back with this
+    times d (10 N/mm: a household object, the table and the arm's joints, lumped): the TCP
+    force the arm reports."""
+    protective_stop_force_n: float = 50.0
+    """The simulated UR stops itself (protective stop) when a contact's force exceeds this,
+    as its safety configuration's force limit does (50-150 N on a real one)."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.real_time_factor) and self.real_time_factor >= 0):
             raise FieldError("real_time_factor", f"must be >= 0, got {self.real_time_factor}")
-        require_positive(self, "object_scale", "table_size_m")
+        require_positive(
+            self,
+            "object_scale",
+            "table_size_m",
+            "contact_stiffness_n_per_m",
+            "protective_stop_force_n",
+        )
         require_finite(self, "object_yaw_deg", "object_albedo_rgb")

@@ -17,6 +17,13 @@ cube on the object point:
    (:meth:`ObjectBound.carve`).
 3. **The shape estimate can only add to it** (:meth:`ObjectBound.with_points`), never remove.
 
+Its **hidden** part (``hidden``) is what the camera did not see: the possible voxels behind the
+measured surface (the voxel's centre over half its diagonal behind the nearest return) or out of
+the image, less what touches carved. The rest of the bound is the band the depth noise keeps in
+front of the measured surface, where the surface points themselves tell where the object is.
+The tool parts behind the gel keep their clearance from the hidden part on an approach: an
+under-estimated limb out of the camera's sight is there.
+
 A voxel is marked possible when any part of it may hold the object, so distances measured to
 possible voxel centres under-estimate clearance by at most half a voxel diagonal.
 """
@@ -71,6 +78,8 @@ class ObjectBound:
     surface_points_world: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
     """The object's measured surface: its depth points above the table in the cube, one per
     :data:`SURFACE_SPACING_M` cell (none without depth)."""
+    hidden: NDArray[np.bool_] | None = None
+    """The possible voxels the camera did not see (module docstring); None: all of them."""
 
     # --- construction ---------------------------------------------------------------------------
 
@@ -127,15 +136,22 @@ class ObjectBound:
         occluder_z = np.full(len(z), -np.inf)
         occluder_z[seen] = heights[v[seen], u[seen]]
         surface = object_depth_points(depth, intrinsics, pose, grid)
-        hidden = _hidden_depth_m(surface)
-        shadow = (occluder_z > OCCLUDER_MIN_HEIGHT_M) & (z <= far + hidden + half_diagonal)
+        hidden_depth_m = _hidden_depth_m(surface)
+        shadow = (occluder_z > OCCLUDER_MIN_HEIGHT_M) & (z <= far + hidden_depth_m + half_diagonal)
         possible = ~seen | (~seen_free & shadow)
         above_table = centres[:, 2] > -0.5 * grid.voxel_size_m
         possible &= above_table
         shape = (grid.resolution,) * 3
+        hidden = possible & ~(seen & (z <= near + half_diagonal))
         cells = np.unique(np.floor(surface / SURFACE_SPACING_M), axis=0)
         surface_points = (cells + 0.5) * SURFACE_SPACING_M
-        return cls(grid, possible.reshape(shape), np.zeros(shape, dtype=bool), surface_points)
+        return cls(
+            grid,
+            possible.reshape(shape),
+            np.zeros(shape, dtype=bool),
+            surface_points,
+            hidden.reshape(shape),
+        )
 
     @classmethod
     def from_box(cls, box: VoxelGrid, object_point_world: ArrayLike) -> ObjectBound:
@@ -162,7 +178,8 @@ class ObjectBound:
             swept[tuple(ijk.T)] = True
         swept = ndimage.binary_erosion(swept, iterations=1)
         free = self.free | swept
-        return replace(self, possible=self.possible & ~free, free=free)
+        hidden = None if self.hidden is None else self.hidden & ~free
+        return replace(self, possible=self.possible & ~free, free=free, hidden=hidden)
 
     # --- queries --------------------------------------------------------------------------------
 
@@ -170,16 +187,26 @@ class ObjectBound:
     def boundary_points_world(self) -> FloatArray:
         """Centres of the possible voxels on the model's surface (a possible voxel with a
         non-possible face neighbour, or on the cube's side): what clearance is measured to."""
-        interior = ndimage.binary_erosion(self.possible, border_value=0)
-        return self.grid.voxel_to_world(np.argwhere(self.possible & ~interior) + 0.5)
+        return self._boundary_points(self.possible)
 
-    def contains(self, points_world: ArrayLike) -> NDArray[np.bool_]:
-        """Whether each point lies in a possible voxel (points outside the cube: False)."""
+    @cached_property
+    def hidden_boundary_points_world(self) -> FloatArray:
+        """Centres of the hidden voxels on the hidden part's surface."""
+        return self._boundary_points(self.possible if self.hidden is None else self.hidden)
+
+    def _boundary_points(self, voxels: NDArray[np.bool_]) -> FloatArray:
+        interior = ndimage.binary_erosion(voxels, border_value=0)
+        return self.grid.voxel_to_world(np.argwhere(voxels & ~interior) + 0.5)
+
+    def contains(self, points_world: ArrayLike, *, hidden: bool = False) -> NDArray[np.bool_]:
+        """Whether each point lies in a possible voxel, or with ``hidden`` in a hidden one
+        (points outside the cube: False)."""
+        voxels = self.possible if not hidden or self.hidden is None else self.hidden
         points = np.asarray(points_world, dtype=float).reshape(-1, 3)
         ijk = np.floor(self.grid.world_to_voxel(points)).astype(np.int64)
         inside = np.all((ijk >= 0) & (ijk < self.grid.resolution), axis=1)
         result = np.zeros(len(points), dtype=bool)
-        result[inside] = self.possible[tuple(ijk[inside].T)]
+        result[inside] = voxels[tuple(ijk[inside].T)]
         return result
 
     def first_along(

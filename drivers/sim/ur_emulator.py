@@ -493,6 +493,10 @@ class URControllerEmulator:
                 return snapshot.pose_tcp
             case "actual_TCP_speed" | "target_TCP_speed":
                 return snapshot.tcp_speed
+            case "actual_TCP_force":
+                return self.arm.tcp_wrench_base()
+            case "tcp_force_scalar":
+                return float(np.linalg.norm(self.arm.tcp_wrench_base()[:3]))
             case "robot_mode":
                 return ROBOT_MODE_RUNNING
             case "joint_mode":

@@ -44,6 +44,8 @@ _T = TypeVar("_T")
 
 COLLISION_LINE_SPACING_M = 0.004
 """Spacing of the probe lines on each tool box face: thinner object slivers could slip through."""
+CONTACT_POINT_SPACING_M = 0.002
+"""Spacing of the points on a tool box's faces whose depth in the object gives a contact's."""
 
 
 def min_object_extent_m(sensor: SensorConfig) -> float:
@@ -69,10 +71,13 @@ class SimClock:
 
 @dataclass(frozen=True)
 class Collision:
-    """Which rigid tool part touches what."""
+    """Which rigid tool part touches what; for a contact (``SimWorld.tool_contact``) also how
+    deep it presses in and the force that pushes the tool back."""
 
     part: str
     obstacle: str  # "object" or "table"
+    depth_m: float = 0.0
+    force_world_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 class SimWorld:
@@ -195,9 +200,81 @@ class SimWorld:
                 return Collision(box.name, "object")
         return None
 
+    def tool_contact(self, pose_world_tcp: NDArray[np.float64], width_m: float) -> Collision | None:
+        """The deepest contact of a rigid tool part with the object or the table, with the
+        force it makes, or None when nothing touches. The force is elastic: the sim config's
+        ``contact_stiffness_n_per_m`` times the depth of the deepest point, pushing the tool out
+        along the way that point leaves the obstacle (the compliance of the object, the table
+        and the arm's joints, lumped)."""
+        deepest: tuple[float, NDArray[np.float64], str, str] | None = None
+        for box in self.tool.rigid_boxes(width_m):
+            pose_world_box = pose_world_tcp @ box.pose_tcp_box
+            for obstacle, hit, penetration in (
+                ("table", self._box_below_table, self._table_penetration),
+                ("object", self._box_hits_object, self._object_penetration),
+            ):
+                if not hit(pose_world_box, box if obstacle == "object" else box.half_extents_m):
+                    continue
+                depth_m, push_world = penetration(pose_world_box, box.half_extents_m)
+                if deepest is None or depth_m > deepest[0]:
+                    deepest = (depth_m, push_world, box.name, obstacle)
+        if deepest is None:
+            return None
+        depth_m, push_world, part, obstacle = deepest
+        force = self.sim_config.contact_stiffness_n_per_m * depth_m * push_world
+        return Collision(
+            part, obstacle, depth_m, (float(force[0]), float(force[1]), float(force[2]))
+        )
+
+    def _table_penetration(
+        self, pose_world_box: NDArray[np.float64], half: NDArray
+    ) -> tuple[float, NDArray[np.float64]]:
+        corners = transform_points(pose_world_box, _BOX_CORNER_SIGNS * half)
+        return float(max(0.0, -corners[:, 2].min())), np.array([0.0, 0.0, 1.0])
+
+    def _object_penetration(
+        self, pose_world_box: NDArray[np.float64], half: NDArray
+    ) -> tuple[float, NDArray[np.float64]]:
+        """How deep a box presses into the object, and the way out (world, unit). Two cases,
+        the deeper counts: object vertices inside the box (an edge or a corner poking in: the
+        depth is the vertex's distance from the nearest box face, pushed back through it) and
+        points of the box's faces inside the object (a face pressed onto a surface: the depth
+        is the shortest way out along the box's axes, pushed that way)."""
+        world_box = invert_transform(pose_world_box)
+        mesh = self.object_mesh_world
+        best_depth, best_push = 0.0, np.array([0.0, 0.0, 1.0])
+        local = transform_points(world_box, mesh.vertices)
+        inside = np.all(np.abs(local) < half, axis=1)
+        if np.any(inside):
+            gaps = half - np.abs(local[inside])  # to each pair of faces
+            axis = np.argmin(gaps, axis=1)
+            depths = gaps[np.arange(len(axis)), axis]
+            k = int(np.argmax(depths))
+            push_box = np.zeros(3)
+            push_box[axis[k]] = -np.sign(local[inside][k, axis[k]]) or 1.0
+            best_depth, best_push = float(depths[k]), pose_world_box[:3, :3] @ push_box
+        face_points = transform_points(pose_world_box, _box_face_points(half))
+        in_object = mesh.contains(face_points)
+        if np.any(in_object):
+            points = face_points[in_object]
+            axes = np.concatenate([pose_world_box[:3, :3].T, -pose_world_box[:3, :3].T])
+            origins = np.repeat(points, len(axes), axis=0)
+            directions = np.tile(axes, (len(points), 1))
+            _, rays, hits = mesh.ray.intersects_id(
+                origins, directions, multiple_hits=False, return_locations=True
+            )
+            out_m = np.full(len(origins), np.inf)
+            out_m[rays] = np.linalg.norm(hits - origins[rays], axis=1)
+            out_m = out_m.reshape(len(points), len(axes))
+            way = np.argmin(out_m, axis=1)
+            depths = out_m[np.arange(len(points)), way]
+            k = int(np.argmax(np.where(np.isfinite(depths), depths, -1.0)))
+            if np.isfinite(depths[k]) and depths[k] > best_depth:
+                best_depth, best_push = float(depths[k]), axes[way[k]]
+        return best_depth, best_push
+
     def _box_below_table(self, pose_world_box: NDArray[np.float64], half: NDArray) -> bool:
-        signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
-        corners = transform_points(pose_world_box, signs * half)
+        corners = transform_points(pose_world_box, _BOX_CORNER_SIGNS * half)
         table_x, table_y = self.sim_config.table_size_m
         on_table = (np.abs(corners[:, 0]) <= table_x / 2) & (np.abs(corners[:, 1]) <= table_y / 2)
         return bool(np.any(on_table & (corners[:, 2] < 0.0)))
@@ -221,6 +298,28 @@ class SimWorld:
             return False
         distances = np.linalg.norm(locations - origins[ray_ids], axis=1)
         return bool(np.any(distances <= lengths[ray_ids]))
+
+
+_BOX_CORNER_SIGNS = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
+
+
+def _box_face_points(half: NDArray) -> NDArray[np.float64]:
+    """Points on a box's six faces, CONTACT_POINT_SPACING_M apart (box frame)."""
+    points = []
+    for axis in range(3):
+        u, v = [a for a in range(3) if a != axis]
+        grid_u = np.linspace(
+            -half[u], half[u], max(2, int(np.ceil(2 * half[u] / CONTACT_POINT_SPACING_M)) + 1)
+        )
+        grid_v = np.linspace(
+            -half[v], half[v], max(2, int(np.ceil(2 * half[v] / CONTACT_POINT_SPACING_M)) + 1)
+        )
+        gu, gv = np.meshgrid(grid_u, grid_v, indexing="ij")
+        for side in (-half[axis], half[axis]):
+            face = np.zeros((gu.size, 3))
+            face[:, axis], face[:, u], face[:, v] = side, gu.ravel(), gv.ravel()
+            points.append(face)
+    return np.concatenate(points)
 
 
 def _face_probe_lines(half: NDArray) -> tuple[NDArray, NDArray, NDArray]:

@@ -90,6 +90,8 @@ class RtdeState:
     pose: NDArray[np.float64]
     joints: NDArray[np.float64]
     tcp_speed: NDArray[np.float64]
+    tcp_force: NDArray[np.float64]
+    """getActualTCPForce: force (N) and torque (N m) at the TCP, base frame."""
     protective_stopped: bool
     emergency_stopped: bool
     program_running: bool
@@ -100,7 +102,10 @@ class RtdeState:
 
     @classmethod
     def from_message(cls, message: dict[str, Any]) -> RtdeState:
-        arrays = {k: np.asarray(message[k], dtype=float) for k in ("pose", "joints", "tcp_speed")}
+        arrays = {
+            k: np.asarray(message[k], dtype=float)
+            for k in ("pose", "joints", "tcp_speed", "tcp_force")
+        }
         return cls(**{**message, **arrays})
 
     @property
@@ -394,6 +399,7 @@ class URRtdeArm(Arm):
             is_moving=self._moving or state.is_moving,
             protective_stopped=state.protective_stopped,
             timestamp_s=state.timestamp_s,
+            tcp_wrench_base=state.tcp_force.copy(),
         )
 
     # --- motion ---------------------------------------------------------------------------------

@@ -29,6 +29,7 @@ RECEIVE_VARIABLES = [
     "actual_q",
     "actual_TCP_pose",
     "actual_TCP_speed",
+    "actual_TCP_force",
     "runtime_state",
     "safety_status_bits",
 ]
@@ -123,6 +124,7 @@ class Worker:
             "pose": self.receive.getActualTCPPose(),
             "joints": self.receive.getActualQ(),
             "tcp_speed": self.receive.getActualTCPSpeed(),
+            "tcp_force": self.receive.getActualTCPForce(),
             "protective_stopped": self.receive.isProtectiveStopped(),
             "emergency_stopped": self.receive.isEmergencyStopped(),
             "program_running": self.receive.getRuntimeState() == RUNTIME_PLAYING,

@@ -265,11 +265,19 @@ async def test_move_into_table_protective_stops_and_recovers(arm: SimUR5, world:
     with pytest.raises(ProtectiveStopError, match="table"):
         await move_l(arm, ur_target(world, (x, y, 0.1)), speed=0.1)
     stopped_at_s = world.clock.now_s
+    # The fingertips press into the table until the force passes the protective-stop limit:
+    # the arm holds the last pose under it, within a step of the depth that makes it.
     fingertip_z = world.pose_world_tcp()[2, 3] - world.tool.finger_tip_z_m
-    assert 0.0 <= fingertip_z < 0.1 * PERIOD_S + 1e-9  # within one step of the table
-    assert world.tool_collision(world.pose_world_tcp(), world.gripper_width_m) is None
+    stop_depth_m = (
+        world.sim_config.protective_stop_force_n / world.sim_config.contact_stiffness_n_per_m
+    )
+    assert stop_depth_m - 0.1 * PERIOD_S - 1e-9 < -fingertip_z <= stop_depth_m + 1e-9
     state = await arm.state()
     assert state.protective_stopped and not state.is_moving
+    limit_n = world.sim_config.protective_stop_force_n
+    step_n = world.sim_config.contact_stiffness_n_per_m * 0.1 * PERIOD_S  # a step's press
+    assert limit_n - step_n - 1e-6 < state.tcp_wrench_base[2] <= limit_n  # pushed up
+    assert arm.protective_stops[-1].obstacle == "table"
 
     with pytest.raises(ProtectiveStopError):
         await move_l(arm, ur_target(world, START_WORLD))
@@ -293,15 +301,45 @@ async def test_sideways_into_the_object_protective_stops(arm: SimUR5, world: Sim
     await move_l(arm, ur_target(world, (x, y, 0.2)))  # fingertips 2.8 cm above the table
     with pytest.raises(ProtectiveStopError, match="object"):
         await move_l(arm, ur_target(world, (0.0, y, 0.2)), speed=0.1)
-    assert (await arm.state()).protective_stopped
-    assert world.tool_collision(world.pose_world_tcp(), world.gripper_width_m) is None
-    # The sensor side (tool +x = world -x) leads: it stops within a step of the box face.
+    state = await arm.state()
+    assert state.protective_stopped
+    # The sensor side (tool +x = world -x) leads: it presses into the box face until the force
+    # passes the limit, and is pushed back along +x.
     leading_x = world.pose_world_tcp()[0, 3] - max(
         box.pose_tcp_box[0, 3] + box.half_extents_m[0]
         for box in world.tool.rigid_boxes(world.gripper_width_m)
         if box.name != "gripper_body"  # passes above the box
     )
-    assert 0.05 <= leading_x < 0.05 + 0.1 * PERIOD_S + 1e-9
+    stop_depth_m = (
+        world.sim_config.protective_stop_force_n / world.sim_config.contact_stiffness_n_per_m
+    )
+    assert stop_depth_m - 0.1 * PERIOD_S - 1e-9 < 0.05 - leading_x <= stop_depth_m + 1e-9
+    step_n = world.sim_config.contact_stiffness_n_per_m * 0.1 * PERIOD_S
+    assert state.tcp_wrench_base[0] > world.sim_config.protective_stop_force_n - step_n - 1e-6
+
+
+async def test_a_light_press_is_felt_as_tcp_force_and_released(
+    arm: SimUR5, world: SimWorld
+) -> None:
+    """A rigid part pressed 2 mm into the object, slowly: the arm reports the elastic force
+    (stiffness x depth, pushing the tool out) and no protective stop; backing out releases it."""
+    x, y, _ = START_WORLD
+    await move_l(arm, ur_target(world, (x, y, 0.2)))
+    assert not np.any((await arm.state()).tcp_wrench_base)
+    leading_x = x - max(
+        box.pose_tcp_box[0, 3] + box.half_extents_m[0]
+        for box in world.tool.rigid_boxes(world.gripper_width_m)
+        if box.name != "gripper_body"
+    )
+    press_m = 0.002
+    await move_l(arm, ur_target(world, (x - (leading_x - 0.05) - press_m, y, 0.2)), speed=0.02)
+    state = await arm.state()
+    assert not state.protective_stopped
+    stiffness = world.sim_config.contact_stiffness_n_per_m
+    np.testing.assert_allclose(state.tcp_wrench_base[:3], [stiffness * press_m, 0, 0], atol=0.5)
+    assert arm.rigid_contacts and arm.rigid_contacts[-1].obstacle == "object"
+    await move_l(arm, ur_target(world, (x, y, 0.2)), speed=0.02)
+    assert not np.any((await arm.state()).tcp_wrench_base)
 
 
 async def test_cancelling_the_move_stops_the_arm(arm: SimUR5, world: SimWorld) -> None:

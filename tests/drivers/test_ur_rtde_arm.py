@@ -353,6 +353,7 @@ async def test_check_arm_command_fails_on_a_tcp_mismatch_and_when_unreachable(
 FAKE_WORKER = """
 import json, sys, time
 state = {"timestamp_s": 1.0, "pose": [0.0] * 6, "joints": [0.0] * 6, "tcp_speed": [0.0] * 6,
+         "tcp_force": [0.0] * 6,
          "protective_stopped": False,
          "emergency_stopped": False, "program_running": True, "async_running": False,
          "async_operation_id": 0, "connected": True}
