@@ -295,7 +295,9 @@ class CheckedMotions:
                 raise SafetyViolation(f"{label} (joint move): {violation}") from None
         speed_rad_s = self.limits.max_joint_speed_rad_s
         largest_turn = float(np.max(np.abs(end - start)))
-        if travel_per_fraction > 0:
+        # A move of no turn at all (start and end the same joints, to rounding) keeps the
+        # joint speed: the ratio below would be 0, a speed the arm refuses.
+        if travel_per_fraction > 0 and largest_turn > 1e-9:
             # At s (fraction per second) = speed / largest turn the tool travels
             # travel_per_fraction * s metres per second.
             tool_speed_limit = self.limits.max_tcp_speed_m_s * largest_turn / travel_per_fraction

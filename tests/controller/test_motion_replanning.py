@@ -224,6 +224,16 @@ def test_a_joint_move_is_refused_when_a_pose_between_its_ends_collides() -> None
         plan.joint_move(high - swing, high + swing, obstacle, "test")
 
 
+def test_a_joint_move_that_does_not_turn_keeps_a_speed_the_arm_accepts() -> None:
+    """A joint move back to where the arm already is (a retreat from a joint move interrupted
+    at its start): forward kinematics' rounding makes the tool seem to move while no joint
+    turns; the speed must stay positive (the arm refuses 0 rad/s: a fault on mug_p2_7cm)."""
+    plan = planner()
+    joints = check_reachable(tool_down_at(0.0, -0.1, 0.3), POSE_WORLD_BASE, HOME)
+    move = plan.joint_move(joints, joints.copy(), Obstacles.none(), "test")
+    assert move.speed_m_s == LIMITS.max_joint_speed_rad_s
+
+
 @pytest.mark.parametrize("joint_limit_rad_s", [LIMITS.max_joint_speed_rad_s, 0.4])
 async def test_joint_move_speeds_keep_the_joint_and_tool_speed_limits(
     joint_limit_rad_s: float,
