@@ -348,6 +348,9 @@ class SessionRun:
 
     summary: dict[str, Any] | None = None
     protective_stops: list[str] | None = None
+    rigid_contacts: list[str] | None = None
+    """Every contact of a rigid tool part with the object or the table the arm pressed on
+    into, protective stop or not (a contact the approach felt and backed out of included)."""
     object_mesh_world: trimesh.Trimesh | None = None
     error: str | None = None
 
@@ -377,6 +380,10 @@ async def run_session(
         if isinstance(devices.arm, SimUR5):
             run.protective_stops = [
                 f"{stop.part} hit the {stop.obstacle}" for stop in devices.arm.protective_stops
+            ]
+            run.rigid_contacts = [
+                f"{contact.part} met the {contact.obstacle}"
+                for contact in devices.arm.rigid_contacts
             ]
     except Exception as error:  # reported with the session, the next one still runs
         log.exception("session failed to run")
@@ -412,6 +419,8 @@ def session_row(
         "error": summary.get("error") or run.error,
         "protective_stops": None if stops is None else len(stops),
         "protective_stop_parts": stops,
+        "rigid_contacts": run.rigid_contacts,
+        "unexpected_forces": len(summary.get("unexpected_forces", [])),
         "stop_reason": summary.get("stop_reason"),
         "skipped_targets": summary.get("skipped_targets", []),
     }
@@ -499,6 +508,8 @@ def summarise_safety(rows: Sequence[dict[str, Any]], settings: SafetySettings) -
         "aborted": states.get("aborted", 0),
         "errors": states.get("error", 0),
         "protective_stops": sum(row["protective_stops"] or 0 for row in rows),
+        "rigid_contacts": sum(len(row.get("rigid_contacts") or []) for row in rows),
+        "unexpected_forces": sum(row.get("unexpected_forces") or 0 for row in rows),
         "min_transit_clearance_mm": _least([row["min_transit_clearance_mm"] for row in rows]),
         "min_transit_clearance_by_part_mm": least_by_part("min_transit_clearance_by_part_mm"),
         "min_approach_clearance_mm": _least([row.get("min_approach_clearance_mm") for row in rows]),
@@ -552,7 +563,9 @@ def format_table(result: dict[str, Any]) -> str:
     lines = [TABLE_HEADER, *(format_row(row) for row in result["sessions_run"])]
     lines.append(
         f"{result['sessions']} sessions: {result['states']}, {result['protective_stops']} "
-        f"protective stops, {result['touches']} touches ({result['contacts']} contacts), "
+        f"protective stops, {result.get('rigid_contacts', 0)} rigid-part contacts "
+        f"({result.get('unexpected_forces', 0)} felt on an approach), {result['touches']} "
+        f"touches ({result['contacts']} contacts), "
         f"{result['skipped_targets']} targets skipped; least transit clearance "
         f"{_number(result['min_transit_clearance_mm'])} mm, approach (window excluded) "
         f"{_number(result['min_approach_clearance_mm'])} mm"

@@ -46,6 +46,8 @@ ROW_KEYS = (
     "contacts",
     "error",
     "protective_stops",
+    "rigid_contacts",
+    "unexpected_forces",
     "stop_reason",
     "skipped_targets",
     "motions",
@@ -301,6 +303,7 @@ def test_a_short_run_reports_each_session_as_it_went(tmp_path: Path) -> None:
     assert (row["touches"], row["contacts"]) == (summary["touches"], summary["contacts"])
     assert (result["touches"], result["contacts"]) == (summary["touches"], summary["contacts"])
     assert row["touches"] >= 1 and row["protective_stops"] == 0
+    assert row["rigid_contacts"] == [] and row["unexpected_forces"] == 0
     assert 0.0 <= row["yaw_deg"] < 360.0
     clearance = result["min_transit_clearance_mm"]
     assert clearance is not None and math.isfinite(clearance) and clearance > 0.0
@@ -341,6 +344,7 @@ def test_failing_sessions_are_reported_and_the_next_runs(tmp_path: Path) -> None
     assert error["state"] == "error" and "missing.stl" in error["error"]
     assert fault["state"] == "fault" and "protective stop" in fault["error"]
     assert fault["protective_stops"] == 1 and result["protective_stops"] == 1
+    assert fault["rigid_contacts"] and result["rigid_contacts"] >= 1
     assert fault["min_transit_clearance_mm"] < 0.0
     assert fault["worst_transit"]["clearance_mm"] == fault["min_transit_clearance_mm"]
     assert done["state"] == "done" and done["protective_stops"] == 0
