@@ -185,8 +185,10 @@ def check_clearance(
     ``shape_clearance_m`` from where the object may be (``Obstacles.keep_out``, and not inside
     the bound), except on the last stretch of an approach, where the sensor must come close to
     the surface it is about to touch: ``near_parts`` keep a quarter of the margin from the
-    estimate's possible points and from the measured surface outside the prism ahead of the
-    ``exempt_parts``, which (the part carrying the gel) may come up to the estimate itself."""
+    estimate's possible points, from the measured surface and from the bound's hidden part
+    (where the object may be out of the camera's sight; their centres never inside it)
+    outside the prism ahead of the ``exempt_parts``, which (the part carrying the gel) may
+    come up to the estimate itself."""
     boxes = tool.rigid_boxes(width_m)
     leading = [
         (pose_world_tcp @ box.pose_tcp_box, box.half_extents_m)

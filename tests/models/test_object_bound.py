@@ -91,6 +91,36 @@ async def test_dropped_depth_over_the_object_is_not_taken_as_free() -> None:
     assert outside_fraction(bound, mesh) == 0.0
 
 
+async def test_the_hidden_part_is_what_the_camera_did_not_see() -> None:
+    """The hidden part (what the tool parts behind the gel keep clear of) holds the object's
+    back, which the camera cannot see, but mostly not the band the depth noise keeps in front
+    of the measured surface (the surface points speak for it; where the 7-pixel window's
+    nearest return lies in front of a pixel's own, the band stays hidden: conservative); it
+    lies within the bound, and touches carve it too."""
+    frame, mesh = await capture("mug")
+    bound = bound_of(frame)
+    assert bound.hidden is not None and not np.any(bound.hidden & ~bound.possible)
+    camera = frame.pose_world_camera[:3, 3]
+    points, faces = trimesh.sample.sample_surface(mesh, 20000, seed=0)
+    facing_away = np.einsum("ij,ij->i", mesh.face_normals[faces], points - camera) > 0.3 * (
+        np.linalg.norm(points - camera, axis=1)
+    )
+    back = points[facing_away & (points[:, 2] > 0.004)]
+    grown = dataclasses.replace(bound, hidden=ndimage.binary_dilation(bound.hidden))
+    assert np.mean(grown.contains(back, hidden=True)) == 1.0
+    toward_camera = camera - bound.surface_points_world
+    toward_camera /= np.linalg.norm(toward_camera, axis=1, keepdims=True)
+    band = bound.surface_points_world + 0.004 * toward_camera
+    assert np.all(bound.contains(band))  # where the object may be...
+    assert np.mean(bound.contains(band, hidden=True)) < 0.5  # ...but mostly seen
+    # A gel's sweep 5 voxels wide through the back: its core is no longer hidden.
+    core = np.argwhere(ndimage.binary_erosion(bound.hidden, iterations=2))[0]
+    swept = np.argwhere(np.ones((5, 5, 5), dtype=bool)) + core - 2
+    carved = bound.carve(swept)
+    assert carved.hidden is not None and not carved.hidden[tuple(core)]
+    assert np.all(carved.hidden <= bound.hidden)
+
+
 def test_touches_carve_it_and_the_estimate_only_adds() -> None:
     grid = ObjectBound.cube((0.0, 0.0, 0.0))
     shape = (grid.resolution,) * 3
