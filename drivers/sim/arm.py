@@ -114,6 +114,7 @@ class SimUR5(Arm):
         self._protective_stop_at_s: float | None = None
         self._contact_force_world_n = np.zeros(3)
         """The force the tool's rigid parts meet at the pose held (world frame)."""
+        self._in_contact = False
         self.rigid_contacts: list[Collision] = []
         """Every rigid-part contact a move pressed on into (its first step), oldest first."""
         self.protective_stops: list[Collision] = []
@@ -284,8 +285,9 @@ class SimUR5(Arm):
                         f"protective stop: {contact.part} hit the {contact.obstacle}"
                         f" ({np.linalg.norm(force_world_n):.0f} N over {limit_n:.0f} N)"
                     )
-                if contact is not None and not np.any(self._contact_force_world_n):
+                if contact is not None and not self._in_contact:
                     self.rigid_contacts.append(contact)
+                self._in_contact = contact is not None
                 self._contact_force_world_n = force_world_n
                 self._world.joints_rad = joints
                 self._world.pose_base_flange = pose_base_flange
