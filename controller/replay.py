@@ -19,8 +19,6 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from controller.perception.learned import make_perception
 from controller.perception.protocol import ShapeEstimate, TouchOutcome, contact_counts
 from controller.recording import REQUEST_FILE, SessionRecorder
@@ -40,6 +38,7 @@ from controller.session_files import (
     save_tactile_frame,
     save_truth,
     touch_inputs_record,
+    touch_rays,
 )
 from models.geometry import ur_pose_to_matrix
 from models.tactile.reconstruction import HeightMapError
@@ -154,7 +153,7 @@ def _run(
         record = {**inputs, **outcome_record(outcome)}
         recorder.log_tactile(measurement.tactile.image_bgr, outcome.height_map_mm)
         recorder.log_touch_patch(outcome.touch)
-        recorder.log_touch(record, _rays(measurement.pad_start_world, outcome))
+        recorder.log_touch(record, touch_rays(measurement.pad_start_world, outcome))
         publish("touch", record)
         estimate = perception.refine(estimate, outcomes, request)
         record_shape(estimate, touch.number)
@@ -184,15 +183,6 @@ def _run(
         truth,
     )
     return summary
-
-
-def _rays(pad_start_world: np.ndarray, outcome: TouchOutcome) -> np.ndarray | None:
-    """Segments from the approach start to (up to 20 of) the contact points."""
-    points = outcome.contact_points_world
-    if len(points) == 0:
-        return None
-    sample = points[:: max(1, len(points) // 20)]
-    return np.stack([np.broadcast_to(pad_start_world, sample.shape), sample], axis=1)
 
 
 def _source_object(folder: Path) -> str | None:

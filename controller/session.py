@@ -43,6 +43,7 @@ from controller.session_files import (
     save_camera_frame,
     save_tactile_frame,
     touch_inputs_record,
+    touch_rays,
 )
 from controller.session_times import SessionTimes
 from controller.states import STEP_TIMEOUT_S, TRANSITIONS, State
@@ -59,6 +60,7 @@ log = logging.getLogger(__name__)
 
 
 MAX_SKIPPED_RECORDS = 200
+TARGET_FIELDS = ("target_world", "direction_world")
 MAX_REFUSED_IN_A_ROW = 20
 """Targets the planner refused at the approach one after another before the session stops:
 the checks at select passed them, so the policy could propose such targets without end."""
@@ -302,7 +304,7 @@ class ExplorationSession:
                 reason: str | None = "the pad's path misses where the object may be"
             else:
                 target = moved
-                reason = self._near_earlier(target)
+                reason = repeat_reason(target, self._rejected, self.outcomes)
             if reason is None:
                 try:
                     self.planner.check_touch(
@@ -350,20 +352,11 @@ class ExplorationSession:
         motion = self.config.motion
         return motion.approach_distance_m, (self.config.gripper.stroke_m - motion.touch_width_m) / 2
 
-    def _near_earlier(self, target: TouchTarget) -> str | None:
-        return repeat_reason(target, self._rejected, self.outcomes)
-
     def _skip(self, target: TouchTarget, reason: str, stage: str) -> None:
         if len(self.skipped) < MAX_SKIPPED_RECORDS:
-            self.skipped.append(
-                {
-                    "touch": self.touch_count + 1,
-                    "stage": stage,
-                    "target_world": np.round(target.target_world, 4).tolist(),
-                    "direction_world": np.round(target.direction_world, 4).tolist(),
-                    "reason": reason,
-                }
-            )
+            where = {k: np.round(getattr(target, k), 4).tolist() for k in TARGET_FIELDS}
+            record = {"touch": self.touch_count + 1, "stage": stage, **where, "reason": reason}
+            self.skipped.append(record)
 
     async def _approach(self) -> State:
         assert self._target is not None and self.estimate is not None
@@ -406,21 +399,12 @@ class ExplorationSession:
 
     async def _unexpected_force(self, target: TouchTarget, error: UnexpectedForceError) -> State:
         """A rigid part met the object on the approach: back out along the approach line to
-        its start, record the event, drop the target and go on (a failed retreat is a fault)."""
+        its start, record the event, drop the target, go on (a failed retreat is a fault)."""
         log.warning("session %s: %s; backing out", self.session_id, error)
-        failure = await self.motion.make_safe(self.obstacles(), lift=False)
-        if failure is not None:
+        if (failure := await self.motion.make_safe(self.obstacles(), lift=False)) is not None:
             raise SessionFault(f"{error}; {failure}")
-        arm = await self._device(self.devices.arm.state())
-        event = {
-            "touch": self.touch_count + 1,
-            "target_world": np.round(target.target_world, 4).tolist(),
-            "direction_world": np.round(target.direction_world, 4).tolist(),
-            "tcp_force_rise_n": round(error.force_n, 2),
-            "finger_force_n": round(error.finger_force_n, 2),
-            "travelled_m": round(error.travelled_m, 4),
-            "backed_out_to_world": np.round(self.pose_world_tcp(arm)[:3, 3], 4).tolist(),
-        }
+        backed_out_to, _ = await self.motion.arm_pose()
+        event = {"touch": self.touch_count + 1, **error.record(target, backed_out_to)}
         self.unexpected_forces.append(event)
         self.recorder.log_event(f"{error}; backed out, target dropped")
         self.publish("event", {"session": self.session_id, "unexpected_force": event})
@@ -482,18 +466,9 @@ class ExplorationSession:
             await self._record(
                 partial(self.recorder.log_touch, {**inputs, "refused": str(error)}, None)
             )
-            self.publish(
-                "touch",
-                {
-                    "session": self.session_id,
-                    "touch": self.touch_count,
-                    "contact": contact,
-                    "error": f"refused: {error}",
-                },
-            )
-            if self.touch_count >= self.request.max_touches:
-                return self._stop("the touch budget is spent")
-            return State.SELECT
+            body = {"session": self.session_id, "touch": self.touch_count, "contact": contact}
+            self.publish("touch", {**body, "error": f"refused: {error}"})
+            return self._select_or_done()
         self.outcomes.append(outcome)
         self.outcome_touches.append(number)
         if outcome.touch is not None and self.measured is not None:
@@ -507,7 +482,11 @@ class ExplorationSession:
         await self._record(
             partial(self.recorder.log_tactile, tactile.image_bgr, outcome.height_map_mm),
             partial(self.recorder.log_touch_patch, outcome.touch),
-            partial(self.recorder.log_touch, record, _rays(self._touch, outcome)),
+            partial(
+                self.recorder.log_touch,
+                record,
+                touch_rays(self._touch.pad_start_world, outcome, self._touch.pad_reach_world),
+            ),
         )
         self.publish("touch", record)
         return State.REFINE
@@ -523,6 +502,10 @@ class ExplorationSession:
         await self._add_estimate_to_bound()
         await self._record_shape()
         self.times.mark()
+        return self._select_or_done()
+
+    def _select_or_done(self) -> State:
+        """After a touch: the next one, or done when the touch budget is spent."""
         if self.touch_count >= self.request.max_touches:
             return self._stop("the touch budget is spent")
         return State.SELECT
@@ -611,13 +594,3 @@ def check_force_or_fault(force_n: float, config: Config) -> None:
         check_force(force_n, config.limits)
     except SafetyViolation as violation:
         raise SessionFault(str(violation)) from None
-
-
-def _rays(touch: TouchGeometry, outcome: TouchOutcome) -> np.ndarray:
-    """Segments from the approach start to (up to 20 of) the contact points, or the full sweep
-    on a miss: what the touch says is empty space."""
-    points = outcome.contact_points_world
-    if len(points) == 0:
-        return np.array([[touch.pad_start_world, touch.pad_reach_world]])
-    sample = points[:: max(1, len(points) // 20)]
-    return np.stack([np.broadcast_to(touch.pad_start_world, sample.shape), sample], axis=1)

@@ -131,6 +131,20 @@ def touch_inputs_record(
     }
 
 
+def touch_rays(
+    pad_start_world: NDArray[np.float64],
+    outcome: TouchOutcome,
+    pad_reach_world: NDArray[np.float64] | None = None,
+) -> NDArray[np.float64] | None:
+    """Segments from the approach start to (up to 20 of) the contact points, or on a miss the
+    full sweep to ``pad_reach_world`` (None without it): what the touch says is empty space."""
+    points = outcome.contact_points_world
+    if len(points) == 0:
+        return None if pad_reach_world is None else np.array([[pad_start_world, pad_reach_world]])
+    sample = points[:: max(1, len(points) // 20)]
+    return np.stack([np.broadcast_to(pad_start_world, sample.shape), sample], axis=1)
+
+
 def outcome_record(outcome: TouchOutcome) -> dict[str, Any]:
     """What interpretation added to a touch's line: its mean contact point and point count."""
     point = outcome.contact_point_world

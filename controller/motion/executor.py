@@ -13,7 +13,7 @@ import time
 from collections.abc import Awaitable, Callable
 from dataclasses import replace
 from functools import partial
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
@@ -25,6 +25,9 @@ from controller.session_times import SessionTimes
 from drivers.base import ArmState, DeviceError
 from drivers.factory import Devices
 from models.geometry import invert_transform, matrix_to_ur_pose, ur_pose_to_matrix
+
+if TYPE_CHECKING:
+    from controller.perception.protocol import TouchTarget
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +68,18 @@ class UnexpectedForceError(RuntimeError):
         self.force_n = force_n
         self.finger_force_n = finger_force_n
         self.travelled_m = travelled_m
+
+    def record(self, target: TouchTarget, backed_out_to_world_tcp: np.ndarray) -> dict[str, Any]:
+        """The event as the session summary lists it: the target, the figures, and where the
+        arm backed out to (the approach start)."""
+        return {
+            "target_world": np.round(target.target_world, 4).tolist(),
+            "direction_world": np.round(target.direction_world, 4).tolist(),
+            "tcp_force_rise_n": round(self.force_n, 2),
+            "finger_force_n": round(self.finger_force_n, 2),
+            "travelled_m": round(self.travelled_m, 4),
+            "backed_out_to_world": np.round(backed_out_to_world_tcp[:3, 3], 4).tolist(),
+        }
 
 
 class MotionExecutor:
