@@ -419,7 +419,7 @@ def session_row(
         "error": summary.get("error") or run.error,
         "protective_stops": None if stops is None else len(stops),
         "protective_stop_parts": stops,
-        "rigid_contacts": run.rigid_contacts,
+        "rigid_contacts": run.rigid_contacts or [],  # none when the arm never moved
         "unexpected_forces": len(summary.get("unexpected_forces", [])),
         "stop_reason": summary.get("stop_reason"),
         "skipped_targets": summary.get("skipped_targets", []),
@@ -508,8 +508,9 @@ def summarise_safety(rows: Sequence[dict[str, Any]], settings: SafetySettings) -
         "aborted": states.get("aborted", 0),
         "errors": states.get("error", 0),
         "protective_stops": sum(row["protective_stops"] or 0 for row in rows),
-        "rigid_contacts": sum(len(row.get("rigid_contacts") or []) for row in rows),
-        "unexpected_forces": sum(row.get("unexpected_forces") or 0 for row in rows),
+        # None when a session (a run merged from before these were counted) did not count.
+        "rigid_contacts": _total([_count(row.get("rigid_contacts")) for row in rows]),
+        "unexpected_forces": _total([row.get("unexpected_forces") for row in rows]),
         "min_transit_clearance_mm": _least([row["min_transit_clearance_mm"] for row in rows]),
         "min_transit_clearance_by_part_mm": least_by_part("min_transit_clearance_by_part_mm"),
         "min_approach_clearance_mm": _least([row.get("min_approach_clearance_mm") for row in rows]),
@@ -534,6 +535,14 @@ def summarise_safety(rows: Sequence[dict[str, Any]], settings: SafetySettings) -
     }
 
 
+def _count(items: list[Any] | None) -> int | None:
+    return None if items is None else len(items)
+
+
+def _total(counts: list[int | None]) -> int | None:
+    return None if any(count is None for count in counts) else sum(counts)  # type: ignore[misc]
+
+
 def format_row(row: dict[str, Any]) -> str:
     """One session as a line of the table (:data:`TABLE_HEADER`)."""
     worst = row.get("worst_transit") or {}
@@ -554,6 +563,10 @@ TABLE_HEADER = (
 )
 
 
+def _maybe(count: int | None) -> str:
+    return "?" if count is None else str(count)
+
+
 def _number(value: float | None) -> str:
     return "-" if value is None else f"{value:.1f}"
 
@@ -563,8 +576,8 @@ def format_table(result: dict[str, Any]) -> str:
     lines = [TABLE_HEADER, *(format_row(row) for row in result["sessions_run"])]
     lines.append(
         f"{result['sessions']} sessions: {result['states']}, {result['protective_stops']} "
-        f"protective stops, {result.get('rigid_contacts', 0)} rigid-part contacts "
-        f"({result.get('unexpected_forces', 0)} felt on an approach), {result['touches']} "
+        f"protective stops, {_maybe(result.get('rigid_contacts'))} rigid-part contacts "
+        f"({_maybe(result.get('unexpected_forces'))} felt on an approach), {result['touches']} "
         f"touches ({result['contacts']} contacts), "
         f"{result['skipped_targets']} targets skipped; least transit clearance "
         f"{_number(result['min_transit_clearance_mm'])} mm, approach (window excluded) "
