@@ -307,8 +307,10 @@ class MotionExecutor:
         if not lift:
             return None
         try:
-            lift = await self.compute(self.planner.plan_lift, pose_world_tcp, joints, obstacles)
-            for waypoint in lift:
+            lift_plan = await self.compute(
+                self.planner.plan_lift, pose_world_tcp, joints, obstacles
+            )
+            for waypoint in lift_plan:
                 await self.move(waypoint)
         except (DeviceError, SafetyViolation) as error:
             log.warning("stayed where the interrupted motion started: %s", error)
