@@ -28,7 +28,8 @@ class ExploreRequest:
     max_touches: Annotated[int, MAX_TOUCHES] = 10
     policy: Literal["active", "random"] = "active"
     update: Literal["fused", "prior", "direct"] = "fused"
-    input: Literal["rgb", "rgbd"] = "rgb"
+    input: Literal["auto", "rgb", "rgbd"] = "auto"
+    """auto: RGB-D when the camera gives depth (the Kinect v2 and the bench do), RGB otherwise."""
     prior: str = "general"
 
     MAX_TOUCHES_RANGE: ClassVar[tuple[int, int]] = (MAX_TOUCHES.low, MAX_TOUCHES.high)

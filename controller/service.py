@@ -229,6 +229,10 @@ class TouchshapeService:
                 world = self.devices.world if self.devices is not None else None
                 if world is not None:
                     summary["object"] = self.config.sim.object
+                vision = session.vision_estimate
+                if vision is not None:
+                    # What the session started from: an ``auto`` request resolved.
+                    summary["vision"] = {"input": vision.input, "prior": vision.prior}
                 summary["object_size_cm"] = object_size_cm(
                     session.vision_estimate,
                     session.estimate,

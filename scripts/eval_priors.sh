@@ -1,24 +1,27 @@
 #!/usr/bin/env bash
 # Evaluates every committed prior, and the automatic choice among them, on the held-out sets of
-# docs/prior.md, from RGB: held-out procedural shapes (the 14 categories and the trained
-# families), the held-out families, small objects (3-6 cm) and the real-object meshes of
-# scripts/source_test_meshes.py (if logs/meshes/ holds them). One JSON per prior and set under
-# $OUT, then the table of scripts/summarise_prior_eval.py. Run from the repository root:
+# docs/prior.md, from INPUT (rgb, or rgbd: the estimate a session starts from, depth fused in):
+# held-out procedural shapes (the 14 categories and the trained families), the held-out
+# families, small objects (3-6 cm) and the real-object meshes of scripts/source_test_meshes.py
+# (if logs/meshes/ holds them). One JSON per prior and set under $OUT, then the table of
+# scripts/summarise_prior_eval.py. Run from the repository root:
 #   nohup scripts/eval_priors.sh > logs/eval_priors.log 2>&1 &
-# PRIORS, VIEWS, SHAPES, WEIGHTS_DIR and OUT may be set in the environment.
+#   INPUT=rgbd nohup scripts/eval_priors.sh > logs/eval_priors_rgbd.log 2>&1 &
+# INPUT, PRIORS, VIEWS, SHAPES, WEIGHTS_DIR and OUT may be set in the environment.
 set -euo pipefail
 TS=".venv/bin/touchshape"
-OUT=${OUT:-logs/eval/priors}
+INPUT=${INPUT:-rgb}
+OUT=${OUT:-logs/eval/priors/$INPUT}
 VIEWS=${VIEWS:-2}
 SHAPES=${SHAPES:-3}
-PRIORS=${PRIORS:-"general box object auto"}
+PRIORS=${PRIORS:-"general box object_frame auto"}
 WEIGHTS=()
 if [[ -n "${WEIGHTS_DIR:-}" ]]; then WEIGHTS=(--weights-dir "$WEIGHTS_DIR"); fi
 export OMP_NUM_THREADS=1
 mkdir -p "$OUT"
 
 for prior in $PRIORS; do
-    common=(--prior "$prior" --views "$VIEWS" --seed 0 "${WEIGHTS[@]}")
+    common=(--prior "$prior" --input "$INPUT" --views "$VIEWS" --seed 0 "${WEIGHTS[@]}")
     $TS eval prior "${common[@]}" --shapes-per-category "$SHAPES" \
         --categories bag bottle bowl camera can cap keyboard earphone helmet jar knife laptop \
         mug remote box superquadric revolved box_any primitive_union blob \

@@ -95,7 +95,7 @@ class ExploreSettings:
     methods: tuple[str, ...] = tuple(METHODS)
     random_runs: int = 10
     oracle_candidates: int = 4
-    input_mode: Literal["rgb", "rgbd"] = "rgb"
+    input_mode: Literal["auto", "rgb", "rgbd"] = "auto"
     prior: str = "general"
     seed: int = 0
     timing_resolutions: tuple[int, ...] = (64, 128)
@@ -157,12 +157,22 @@ class ObjectRun:
         perception = self.perception(_seed(settings.seed, self.key))
         self.metric_seed = _seed(settings.seed, self.key, 7)
         frame = self.bench.frame()
-        self.vision = perception.reconstruct(frame, self.request("active", "prior"))
+        # The fused update starts where a session does (RGB-D: the depth fused into the prior);
+        # the paper's updates from the prior's voxels.
+        self.vision_fused = perception.reconstruct(frame, self.request("active", "fused"))
+        self.vision = replace(
+            self.vision_fused, probabilities=self.vision_fused.vision_probabilities, fused=None
+        )
         # The estimate's grid: registered, or fitted to the object by an object-frame prior.
         self.grid = self.vision.grid
         self.truth = voxelize(self.mesh_world, self.grid).astype(np.float32)
         self.true_points = sample_surface(self.mesh_world, SURFACE_SAMPLES, self.metric_seed + 1)
         self.vision_metrics = self.metrics(self.vision)
+        self.vision_fused_metrics = (
+            self.metrics(self.vision_fused)
+            if self.vision_fused.fused is not None
+            else self.vision_metrics
+        )
 
     def perception(self, seed: int) -> LearnedPerception:
         return LearnedPerception(
@@ -284,14 +294,13 @@ def _explore(run: ObjectRun, method: str, run_index: int, tick: Callable[[], Non
     method_index = list(METHODS).index(method)
     perception = run.perception(_seed(settings.seed, run.key, method_index, run_index))
     request = run.request(policy, update)
-    estimate = run.vision
+    # RGB-D: the fused update starts from vision with the camera's depth fused in (as a
+    # session's reconstruct gives it), so its curve measures what the touches add.
+    fused = update == "fused"
+    estimate = run.vision_fused if fused else run.vision
+    start = run.vision_fused_metrics if fused else run.vision_metrics
     outcomes: list[TouchOutcome] = []
-    curves: dict[str, list] = {key: [value] for key, value in run.vision_metrics.items()}
-    if update == "fused" and not estimate.camera_observations.is_empty:
-        # RGB-D: the fused update starts from vision with the camera's depth fused in (as a
-        # session's reconstruct gives it), so its curve measures what the touches add.
-        estimate = perception.refine_fused(estimate, [], request)
-        curves = {key: [value] for key, value in run.metrics(estimate).items()}
+    curves: dict[str, list] = {key: [value] for key, value in start.items()}
     curves.update(
         select_s=[], refine_s=[], contact=[], imprint=[], touch_loss=[], flipped=[], target=[]
     )

@@ -116,7 +116,7 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
         help="the oracle tries this many active windows and as many random touches",
     )
     explore.add_argument("--prior", default=None, help="prior name (default: the config's)")
-    explore.add_argument("--input", choices=("rgb", "rgbd"), default="rgb")
+    explore.add_argument("--input", choices=("auto", "rgb", "rgbd"), default="auto")
     explore.add_argument(
         "--refine-lr", type=float, default=None, help="refinement learning rate (config's)"
     )
@@ -209,7 +209,7 @@ def _add_safety(commands: argparse._SubParsersAction) -> None:
     safety.add_argument("--yaws", type=int, default=1, help="sessions per object, random yaws")
     safety.add_argument("--touches", type=int, default=10, help="touch budget per session")
     safety.add_argument("--seed", type=int, default=0, help="draws the yaws and device noise")
-    safety.add_argument("--input", choices=("rgb", "rgbd"), default="rgb")
+    safety.add_argument("--input", choices=("auto", "rgb", "rgbd"), default="auto")
     safety.add_argument(
         "--logs", type=Path, default=None, help="keep the sessions' logs here (default: a temp dir)"
     )

@@ -30,7 +30,12 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
         default=None,
         help="how touches change the shape (default: the config's, fused)",
     )
-    explore.add_argument("--input", choices=["rgb", "rgbd"], default="rgb")
+    explore.add_argument(
+        "--input",
+        choices=["auto", "rgb", "rgbd"],
+        default="auto",
+        help="auto: RGB-D when the camera gives depth (the Kinect v2 and the bench do)",
+    )
     explore.set_defaults(handler=_explore, quiet_logging=True)
 
 

@@ -193,7 +193,18 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
         help="scale each held-out shape to a largest extent in this range, metres "
         "(e.g. 0.03 0.06: the small objects)",
     )
-    prior.add_argument("--input", choices=("rgb", "rgbd"), default="rgb")
+    prior.add_argument(
+        "--input",
+        choices=("auto", "rgb", "rgbd"),
+        default="auto",
+        help="auto: RGB-D where the camera gives depth (the bench does), as a session starts",
+    )
+    prior.add_argument(
+        "--no-symmetry", action="store_true", help="RGB-D without the symmetry completion"
+    )
+    prior.add_argument(
+        "--no-pose-fit", action="store_true", help="RGB-D without the prior's pose fit to depth"
+    )
     prior.add_argument("--views", type=int, default=4, help="random object yaws per object")
     prior.add_argument(
         "--prior",
@@ -328,6 +339,8 @@ def eval_prior(args: argparse.Namespace) -> int:
     from models.prior.evaluation import EvalObject, evaluate_prior, held_out_objects
     from models.prior.shape_prior import ShapePrior, available_priors
     from models.shapes import load_mesh_file
+    from models.touch.fused import FusionSettings
+    from models.vision import VisionSettings
 
     config = load_config(args.config)
     models = dataclasses.replace(
@@ -364,7 +377,10 @@ def eval_prior(args: argparse.Namespace) -> int:
         objects,
         evaluation_camera(config),
         views=args.views,
-        input_mode=args.input,
+        input_mode="rgbd" if args.input == "auto" else args.input,
+        settings=VisionSettings(
+            fusion=FusionSettings(pose_fit=not args.no_pose_fit), symmetry=not args.no_symmetry
+        ),
         seed=args.seed,
     )
     print_json(result, args.json)

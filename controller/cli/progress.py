@@ -102,6 +102,9 @@ def print_summary(summary: dict[str, Any], out: TextIO | None = None) -> None:
         rows.append(
             ("compute / motion", f"{summary['compute_s']:.1f} s / {summary['motion_s']:.1f} s")
         )
+    vision = summary.get("vision")
+    if vision:
+        rows.append(("vision", f"{vision['input']} input, prior {vision['prior']}"))
     for metric, values in summary.get("metrics", {}).items():
         if values:
             rows.append((metric, " -> ".join(f"{v:.2f}" for v in (values[0], values[-1]))))

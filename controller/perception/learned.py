@@ -33,8 +33,8 @@ from controller.request import ExploreRequest
 from drivers.base import RGBDFrame
 from drivers.factory import Devices
 from models.geometry import VoxelGrid, make_transform
-from models.object_bound import object_depth_points
-from models.prior.auto import AUTO, choose_prior
+from models.prior.auto import AUTO
+from models.prior.carving import SEEN_EMPTY_PROBABILITY
 from models.prior.networks import LATENT_DIM
 from models.prior.shape_prior import ShapePrior, available_priors
 from models.tactile.lut import (
@@ -62,7 +62,7 @@ from models.touch.fused import (
     SignedDistanceGrid,
     posed_grid,
 )
-from models.touch.observations import SurfaceObservations, camera_observations, observations_of
+from models.touch.observations import SurfaceObservations, observations_of
 from models.touch.policy import (
     above_table_filter,
     all_of,
@@ -73,6 +73,7 @@ from models.touch.policy import (
     touch_candidates,
 )
 from models.touch.refinement import RefinementResult, direct_edit, refine_latent
+from models.vision import VisionSettings, estimate_from_frame
 
 log = logging.getLogger(__name__)
 
@@ -162,25 +163,29 @@ class LearnedPerception:
 
     def reconstruct(self, frame: RGBDFrame, request: ExploreRequest) -> ShapeEstimate:
         names = self.prior_names() - {AUTO} if request.prior == AUTO else {request.prior}
-        prediction, scores = choose_prior(
+        vision = estimate_from_frame(
             {name: self.prior(name) for name in sorted(names)},
             frame.colour_rgb,
             frame.intrinsics,
             frame.pose_world_camera,
             self.grid,
-            depth_m=frame.depth_m if request.input == "rgbd" else None,
+            depth_m=frame.depth_m,
+            input_mode=request.input,
+            settings=self.vision_settings,
         )
+        prediction = vision.prediction
         if request.prior == AUTO:
-            log.info("prior auto: %s (silhouette agreement %s)", prediction.prior, scores)
-        camera = SurfaceObservations.none()
-        if request.input == "rgbd":
-            points = object_depth_points(
-                frame.depth_m, frame.intrinsics, frame.pose_world_camera, prediction.grid
+            log.info(
+                "prior auto: %s (silhouette agreement %s)", prediction.prior, vision.prior_scores
             )
-            camera = camera_observations(points, frame.pose_world_camera[:3, 3])
-        estimate = ShapeEstimate(
+        if vision.symmetry is not None:
+            log.info("symmetry completion: %s", vision.symmetry.summary())
+        # The fused update starts from the depth fused into the prior; the paper's updates
+        # (latent, Direct Edit) from the prior's voxels.
+        fused = request.update == "fused" and vision.fused is not None
+        return ShapeEstimate(
             grid=prediction.grid,
-            probabilities=prediction.probabilities,
+            probabilities=vision.probabilities if fused else prediction.probabilities,
             latent=prediction.latent,
             prior=prediction.prior,
             sketches={
@@ -190,17 +195,11 @@ class LearnedPerception:
             },
             vision_probabilities=prediction.probabilities,
             vision_latent=prediction.latent,
-            camera_observations=camera,
+            camera_observations=vision.camera_observations,
+            fused=vision.fused if fused else None,
+            seen_empty=prediction.seen_empty,
+            input=vision.input,
         )
-        if request.update == "fused" and not camera.is_empty:
-            # The camera's depth is fused like a touch: the estimate before any touch has it.
-            fused = FusedShape.from_prior(
-                prediction.probabilities, prediction.grid, camera, self.fusion_settings
-            )
-            estimate = replace(
-                estimate, probabilities=self._fused_probabilities(fused, estimate.grid), fused=fused
-            )
-        return estimate
 
     def select(
         self,
@@ -345,6 +344,11 @@ class LearnedPerception:
         )
 
     @property
+    def vision_settings(self) -> VisionSettings:
+        """The session's start: the depth fused with the touches' kernel and prior deviation."""
+        return VisionSettings(fusion=replace(self.fusion_settings, pose_fit=False))
+
+    @property
     def fusion_settings(self) -> FusionSettings:
         models = self.config.models
         return FusionSettings(
@@ -377,8 +381,20 @@ class LearnedPerception:
         """The estimate's latent refined by the touch loss (``[models]`` settings), anchored to
         the vision latent."""
         models = self.config.models
+        decode = self.prior(estimate.prior or request.prior).decode
+        if estimate.seen_empty is not None:
+            # Space the camera saw empty stays empty in every shape the latent decodes to.
+            seen_empty = torch.as_tensor(estimate.seen_empty)
+            prior_decode = decode
+
+            def decode(latent: torch.Tensor) -> torch.Tensor:
+                probabilities = prior_decode(latent)
+                return torch.where(
+                    seen_empty, probabilities.clamp(max=SEEN_EMPTY_PROBABILITY), probabilities
+                )
+
         return refine_latent(
-            self.prior(estimate.prior or request.prior).decode,
+            decode,
             torch.as_tensor(estimate.latent),
             constraints,
             learning_rate=models.refine_learning_rate,

@@ -45,6 +45,10 @@ class ShapeEstimate:
     fused: Any | None = None
     """The fused shape (``models.touch.fused.FusedShape``) when the fused update made this
     estimate: ``probabilities`` are then its P(inside) at the voxel centres."""
+    seen_empty: NDArray[np.bool_] | None = None
+    """Voxels of ``grid`` the camera saw empty (``models.prior.carving``): no update fills them."""
+    input: str = "rgb"
+    """What vision used: "rgb" or "rgbd" (an ``auto`` request resolved by the frame)."""
     _surface: trimesh.Trimesh | None = field(default=None, init=False, repr=False, compare=False)
     _surface_lock: threading.Lock = field(
         default_factory=threading.Lock, init=False, repr=False, compare=False

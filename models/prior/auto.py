@@ -1,10 +1,10 @@
 """Choosing the prior from what vision sees: ``prior = "auto"``.
 
 Every committed prior predicts the object; the one whose shape best explains the image wins. The
-score is the agreement (IoU) between the silhouette the sketch net sees in the crop and the
-silhouette of the predicted occupancy projected through the same camera: a prior that decodes the
-wrong kind of shape (a box for a mug) covers the object's outline badly. No extra training is
-needed, and the choice is made per view.
+score is the agreement (IoU) between the silhouette seen in the crop (the sketch net's; with
+depth, the returns above the table) and the silhouette of the predicted occupancy projected
+through the same camera: a prior that decodes the wrong kind of shape (a box for a mug) covers the
+object's outline badly. No extra training is needed, and the choice is made per view.
 """
 
 from __future__ import annotations
@@ -48,7 +48,10 @@ def silhouette_agreement(
     pose_world_camera: np.ndarray,
     seen: np.ndarray | None = None,
 ) -> float:
-    """IoU of the projected prediction with the seen silhouette (default: the sketch net's)."""
+    """IoU of the projected prediction with the seen silhouette (default: the prediction's
+    ``seen_silhouette``, which is the depth's with RGB-D, else the sketch net's)."""
+    if seen is None:
+        seen = prediction.seen_silhouette
     seen_mask = prediction.silhouette > 0.5 if seen is None else np.asarray(seen, dtype=bool)
     projected = projected_silhouette(prediction, pose_world_camera)
     union = np.count_nonzero(projected | seen_mask)

@@ -30,12 +30,13 @@ from models.geometry import (
     occupied_extent_m,
     rotation_about_axis,
 )
-from models.metrics import mesh_metrics, voxel_iou
-from models.prior.auto import AUTO, choose_prior
+from models.metrics import surfaces_metrics, voxel_iou
+from models.prior.auto import AUTO
 from models.prior.dataset import EVAL_SEED_START, generated_shape, shape_rngs
 from models.prior.shape_prior import ShapePrior
 from models.render import Scene, apply_kinect_depth_noise, render
 from models.shapes import voxelize
+from models.vision import VisionSettings, estimate_from_frame
 
 
 @dataclass(frozen=True)
@@ -100,12 +101,15 @@ def evaluate_prior(
     *,
     views: int = 4,
     input_mode: Literal["rgb", "rgbd"] = "rgb",
+    settings: VisionSettings | None = None,
     seed: int = 0,
     progress: bool = True,
 ) -> dict:
     """Per-object and mean metrics, as ``{"objects": [...], "mean": {...}, "per_category":
     {...}}`` with ``iou``, ``chamfer_mm``, ``fscore_2mm``, ``fscore_5mm`` and the size errors.
-    One prior is evaluated as it is; several are chosen from per view (``prior = "auto"``)."""
+    One prior is evaluated as it is; several are chosen from per view (``prior = "auto"``).
+    What is scored is the estimate a session starts from (:func:`models.vision.estimate_from_frame`:
+    with RGB-D, the depth fused into the prior), its surface through the session's extraction."""
     from tqdm import tqdm
 
     first = next(iter(priors.values()))
@@ -132,31 +136,29 @@ def evaluate_prior(
                 depth = apply_kinect_depth_noise(
                     frame.depth_m, frame.normals_camera, rng, intrinsics=camera.intrinsics
                 )
-            prediction, _ = choose_prior(
+            estimate = estimate_from_frame(
                 priors,
                 frame.colour_rgb,
                 camera.intrinsics,
                 camera.pose_world_camera,
                 grid,
                 depth_m=depth,
+                input_mode=input_mode,
+                settings=settings,
             )
             # An object-frame prior decodes in the grid it fitted to the object.
-            truth = voxelize(mesh_world, prediction.grid)
-            surface = mesh_metrics(
-                prediction.probabilities,
-                prediction.grid,
-                mesh_world,
-                seed=int(rng.integers(1 << 31)),
+            truth = voxelize(mesh_world, estimate.grid)
+            surface = surfaces_metrics(
+                estimate.surface_mesh(), mesh_world, seed=int(rng.integers(1 << 31))
             )
-            errors = extent_errors(prediction.probabilities, prediction.grid, mesh_world)
+            errors = extent_errors(estimate.probabilities, estimate.grid, mesh_world)
             per_view.append(
                 {
                     "size_error": float(np.max(np.abs(errors))),
                     "extent_error_xyz": errors.tolist(),
-                    "prior": prediction.prior,
-                    "iou": voxel_iou(
-                        prediction.probabilities[None], truth[None].astype(np.float32)
-                    ),
+                    "prior": estimate.prediction.prior,
+                    "symmetry": None if estimate.symmetry is None else estimate.symmetry.kind,
+                    "iou": voxel_iou(estimate.probabilities[None], truth[None].astype(np.float32)),
                     # An empty prediction has no surface: no Chamfer distance (counted separately).
                     "chamfer_mm": surface.chamfer_mm
                     if math.isfinite(surface.chamfer_mm)
@@ -173,6 +175,7 @@ def evaluate_prior(
             _median([v["extent_error_xyz"][axis] for v in per_view]) for axis in range(3)
         ]
         row["priors_chosen"] = sorted({v["prior"] for v in per_view})
+        row["symmetry_views"] = sum(v["symmetry"] is not None for v in per_view)
         # Per view (the same views for every prior: they depend on the seed and the object
         # only), so the automatic choice can be checked against each single prior's.
         row["views"] = [

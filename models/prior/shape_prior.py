@@ -25,6 +25,7 @@ import torch
 
 from models.camera import CameraIntrinsics
 from models.geometry import VoxelGrid
+from models.prior.carving import carve, seen_empty_voxels, seen_silhouette
 from models.prior.frame import FrameError, depth_silhouette, fit_object_grid, search_grid
 from models.prior.networks import (
     NetworkPreset,
@@ -98,7 +99,7 @@ class PriorPrediction:
     ``probabilities`` (N, N, N) float32 occupancy in ``grid`` indexed [i, j, k]; ``latent`` the
     (200,) code; ``depth_m`` (metres, 0 = background), ``normals_camera`` (camera frame) and
     ``silhouette`` (probability) are the predicted sketches on the crop's pixels (``crop``);
-    ``prior`` names the prior that made it.
+    ``prior`` names the prior that made it. Space the camera saw empty is carved out.
     """
 
     probabilities: np.ndarray
@@ -109,6 +110,12 @@ class PriorPrediction:
     crop: GridCrop
     grid: VoxelGrid
     prior: str
+    seen_empty: np.ndarray | None = None
+    """(N, N, N) bool: voxels the camera saw empty (:mod:`models.prior.carving`); the
+    probabilities are capped there, and so must be any shape decoded from the latent later."""
+    seen_silhouette: np.ndarray | None = None
+    """(H, W) bool on the crop: where the object was seen (the sketch net's silhouette; with
+    depth, the returns above the table), as the carving used it."""
 
 
 class ShapePrior:
@@ -240,15 +247,19 @@ class ShapePrior:
         silhouette = torch.sigmoid(sketches["silhouette_logits"])
         mask = (silhouette > 0.5).float()
         depth = sketches["depth"]
+        seen = mask[0, 0].cpu().numpy() > 0
+        sensor_m = None
         if depth_m is not None:
-            sensor = crop.nearness(crop_image(depth_m.astype(np.float32), crop, nearest=True))
-            sensor_t = torch.from_numpy(sensor)[None, None].to(self.device)
+            sensor_m = crop_image(depth_m.astype(np.float32), crop, nearest=True)
+            sensor_t = torch.from_numpy(crop.nearness(sensor_m))[None, None].to(self.device)
             depth = torch.where(sensor_t > 0, sensor_t, depth)
+        seen = seen_silhouette(seen, sensor_m, crop.intrinsics, pose_world_camera, grid)
         latent = self.shape_net.encode(shape_input(depth, sketches["normals"], mask))
-        probabilities = self.shape_net.decode(latent)[0]
+        probabilities = self.shape_net.decode(latent)[0].cpu().numpy()
+        seen_empty = seen_empty_voxels(grid, crop, pose_world_camera, seen, sensor_m)
         near = (depth * mask)[0, 0].cpu().numpy()
         return PriorPrediction(
-            probabilities=probabilities.cpu().numpy().astype(np.float32),
+            probabilities=carve(probabilities, seen_empty),
             latent=latent[0].cpu(),
             depth_m=crop.depth_m(near),
             normals_camera=(sketches["normals"] * mask)[0].permute(1, 2, 0).cpu().numpy(),
@@ -256,6 +267,8 @@ class ShapePrior:
             crop=crop,
             grid=grid,
             prior=self.name,
+            seen_empty=seen_empty,
+            seen_silhouette=seen,
         )
 
     def sketches(

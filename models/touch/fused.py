@@ -30,7 +30,7 @@ import numpy as np
 import trimesh
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import cho_factor, cho_solve, solve_triangular
-from scipy.ndimage import distance_transform_edt, map_coordinates
+from scipy.ndimage import binary_dilation, distance_transform_edt, map_coordinates
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
@@ -217,6 +217,9 @@ class FusionSettings:
     surface_noise_m: float = 0.0002
     camera_noise_m: float = 0.0015
     """The depth camera's points (RGB-D input): Kinect v2 noise at 0.6-0.8 m."""
+    symmetry_noise_m: float = 0.004
+    """Points a symmetry completed (``models.symmetry``): a guess about the unseen side, held
+    loosely (a real object is symmetric only roughly)."""
     normal_offset_m: float = 0.0
     """Points this far along each contact's normal, outside and inside, held at +-offset so the
     field's gradient follows the measured normals; 0: none (a patch's dense points already
@@ -324,20 +327,27 @@ def fit_correction(
     surface = observations.surface_points_world[touched]
     keep = thin_to_lattice(surface, settings.surface_spacing_m)
     surface, normals = surface[keep], observations.surface_normals_world[touched][keep]
-    # The camera's points (source -1): on the surface, within the depth noise; their normals
-    # are too rough for offset points.
-    seen = observations.surface_points_world[~touched]
+    # The camera's points (source -1): on the surface, within the depth noise; the points a
+    # symmetry completed (source -2) more loosely. Their normals are too rough for offsets.
+    source = observations.surface_source
+    seen = observations.surface_points_world[source == -1]
+    mirrored = observations.surface_points_world[source < -1]
     offset = settings.normal_offset_m
     offsets = (offset, -offset) if offset > 0 else ()
-    points = np.concatenate([surface, *(surface + o * normals for o in offsets), seen])
+    points = np.concatenate([surface, *(surface + o * normals for o in offsets), seen, mirrored])
     targets = np.concatenate(
-        [np.zeros(len(surface)), *(np.full(len(surface), o) for o in offsets), np.zeros(len(seen))]
+        [
+            np.zeros(len(surface)),
+            *(np.full(len(surface), o) for o in offsets),
+            np.zeros(len(seen) + len(mirrored)),
+        ]
     )
     noise = np.concatenate(
         [
             np.full(len(surface), settings.surface_noise_m),
             np.full(len(offsets) * len(surface), settings.normal_noise_m),
             np.full(len(seen), settings.camera_noise_m),
+            np.full(len(mirrored), settings.symmetry_noise_m),
         ]
     )
     # The standard deviation conditions on the surface points only, thinned (see settings).
@@ -346,12 +356,14 @@ def fit_correction(
     spacing = settings.variance_spacing_m
     touch_anchors = surface[thin_to_lattice(surface, spacing)]
     seen_anchors = seen[thin_to_lattice(seen, 3 * spacing)]
+    mirrored_anchors = mirrored[thin_to_lattice(mirrored, 3 * spacing)]
     variance = _VarianceAnchors(
-        np.concatenate([touch_anchors, seen_anchors]),
+        np.concatenate([touch_anchors, seen_anchors, mirrored_anchors]),
         np.concatenate(
             [
                 np.full(len(touch_anchors), settings.surface_noise_m),
                 np.full(len(seen_anchors), settings.camera_noise_m),
+                np.full(len(mirrored_anchors), settings.symmetry_noise_m),
             ]
         ),
     )
@@ -461,20 +473,50 @@ class FusedShape:
         self, grid: VoxelGrid, std_floor_m: float = 0.0003, *, use_variance: bool = True
     ) -> NDArray[np.float32]:
         """P(inside) = Phi(-f / s) at ``grid``'s voxel centres, (N, N, N); without
-        ``use_variance``, s is the prior's deviation everywhere (touched or not)."""
-        centres = grid.voxel_centres_world().reshape(-1, 3)
-        field = np.maximum(self.prior(centres), -centres[:, 2])
-        std = np.full(len(centres), self.correction.settings.prior_std_m)
+        ``use_variance``, s is the prior's deviation everywhere (touched or not). The
+        correction and its deviation vary over the kernel's support (centimetres): they are
+        evaluated on every other voxel centre and interpolated, and exactly within
+        ``_EXACT_NEAR_M`` of the touches' points (where they follow the measured detail)."""
+        n = grid.resolution
+        centres = grid.voxel_centres_world()
+        prior_field = np.maximum(self.prior(centres), -centres[..., 2])
+        prior_std = self.correction.settings.prior_std_m
         # Only near the surface can the correction change the sign or the probability: farther
         # than its largest value plus 4 prior deviations, P(inside) is 0 or 1 whatever it adds.
-        band = np.abs(field) < self.correction.largest_m + 4 * std
-        field[band] = self.sdf(centres[band])
-        if use_variance:
-            # Farther than 4 prior deviations from the fused surface, P is 0 or 1 anyway.
-            near = np.abs(field) < 4 * std
-            std[near] = self.std(centres[near])
+        band = np.abs(prior_field) < self.correction.largest_m + 4 * prior_std
+        correction = np.zeros((n, n, n))
+        std = np.full((n, n, n), prior_std)
+        if band.any() and not self.correction.is_empty:
+            lattice = np.unique(np.r_[np.arange(0, n, 2), n - 1])
+            coarse_index = np.ix_(lattice, lattice, lattice)
+            # Every coarse centre next to a band voxel is evaluated (the band grown by 2).
+            wanted = binary_dilation(band, iterations=2)[coarse_index]
+            coarse_points = centres[coarse_index][wanted]
+            coarse_mean = np.zeros(wanted.shape)
+            coarse_mean[wanted] = self.correction.mean(coarse_points)
+            coarse_std = np.full(wanted.shape, prior_std)
+            if use_variance:
+                coarse_std[wanted] = self.correction.std(coarse_points)
+            position = np.interp(np.arange(n), lattice, np.arange(len(lattice)))
+            where = np.stack(np.meshgrid(position, position, position, indexing="ij"))[:, band]
+            correction[band] = map_coordinates(coarse_mean, where, order=1)
+            std[band] = map_coordinates(coarse_std, where, order=1)
+            touched = self.correction.touched_world
+            if len(touched):
+                distance, _ = cKDTree(touched).query(
+                    centres[band], distance_upper_bound=_EXACT_NEAR_M
+                )
+                exact = np.flatnonzero(band)[np.isfinite(distance)]
+                exact_points = centres.reshape(-1, 3)[exact]
+                correction.reshape(-1)[exact] = self.correction.mean(exact_points)
+                if use_variance:
+                    std.reshape(-1)[exact] = self.correction.std(exact_points)
+        field = np.maximum(self.prior(centres) + correction, -centres[..., 2])
+        field = np.where(band, field, prior_field)
+        if not use_variance:
+            std[:] = prior_std
         inside = ndtr(-field / np.hypot(std, std_floor_m))
-        return inside.reshape((grid.resolution,) * 3).astype(np.float32)
+        return inside.astype(np.float32)
 
     def mesh(self, spacing_m: float = EXTRACTION_SPACING_M) -> trimesh.Trimesh:
         """The zero surface, marching cubes on a ``spacing_m`` lattice around the object."""

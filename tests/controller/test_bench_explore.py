@@ -187,7 +187,11 @@ def check_curves(result: dict, touches: int) -> None:
 def test_benchmark_json_on_a_small_object(config, calibration, tmp_path: Path) -> None:
     box = trimesh.creation.box((0.06, 0.05, 0.08), transform=make_transform(None, (0, 0, 0.04)))
     settings = ExploreSettings(
-        touches=2, methods=("active-fused", "random-prior"), random_runs=2, timing_resolutions=()
+        touches=2,
+        methods=("active-fused", "random-prior"),
+        random_runs=2,
+        timing_resolutions=(),
+        input_mode="rgb",  # RGB-D: the fused methods start from the depth fused in
     )
     result = run_explore_benchmark(
         config,

@@ -1,0 +1,165 @@
+"""Symmetry completion: the unseen side of an object from the side the camera saw.
+
+Many household objects are mirror- or rotation-symmetric about their vertical. As in Bohg et
+al., "Mind the gap - robotic grasping under incomplete observation" (ICRA 2011), the seen points
+are mirrored about candidate vertical planes (and turned about candidate vertical axes); a
+candidate is refuted by mirrored points that land where the camera saw empty space (in front of
+the measured surface, or on a ray that reached the table: :class:`models.prior.carving.CameraView`).
+Of the candidates with few refuted points that put enough points out of sight (they complete
+something), the one whose copies stand least far into free space wins; its copies that are not
+refuted and lie out of sight become weaker surface observations (source -2) of the fused field.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from models.geometry import rotation_about_axis
+from models.prior.carving import CameraView
+from models.touch.observations import CAMERA_SPACING_M, SurfaceObservations, thin_to_lattice
+
+FloatArray = NDArray[np.float64]
+Candidate = tuple[str, FloatArray, FloatArray]
+"""("plane" or "axis", a point on it, the plane's normal or the axis)."""
+
+SYMMETRY_SOURCE = -2
+"""``SurfaceObservations.surface_source`` of the mirrored points."""
+PLANE_ANGLES = 12
+"""Candidate plane normals every 15 degrees (a plane's normal and its opposite are one)."""
+OFFSETS = 9
+"""Candidate positions of each plane (or axis) along its normal, across the seen extent."""
+AXIS_TURNS = (60.0, 120.0, 180.0, 240.0, 300.0)
+"""A rotation-symmetric candidate's copies of the seen points (degrees about the axis)."""
+MAX_REFUTED = 0.08
+"""A candidate with more of its points in seen-empty space than this fraction is rejected."""
+VIOLATION_NOISE_M = 0.002
+"""A copy counts as standing in free space by how far it is in front of the seen surface, less
+the depth noise (Kinect v2: 1.5 mm at 0.6-0.8 m)."""
+VIOLATION_CAP_M = 0.02
+"""... capped, so that a few far copies (a handle mirrored into the open) do not decide."""
+MIN_HIDDEN = 0.3
+"""A candidate must put at least this fraction of its points out of sight: a plane that only
+maps the seen side onto itself completes nothing."""
+
+
+@dataclass(frozen=True)
+class SymmetryFit:
+    """The chosen symmetry: a vertical ``plane`` (``direction_world`` its horizontal normal) or
+    a vertical ``axis`` (``direction_world`` = +z), through ``point_world``."""
+
+    kind: Literal["plane", "axis"]
+    point_world: FloatArray
+    direction_world: FloatArray
+    refuted_fraction: float
+    hidden_fraction: float
+    observations: SurfaceObservations
+    """The completed points (source :data:`SYMMETRY_SOURCE`) with their mirrored normals."""
+
+    def summary(self) -> dict[str, object]:
+        return {
+            "kind": self.kind,
+            "point_world_m": np.round(self.point_world, 4).tolist(),
+            "direction_world": np.round(self.direction_world, 4).tolist(),
+            "refuted_fraction": round(self.refuted_fraction, 4),
+            "hidden_fraction": round(self.hidden_fraction, 4),
+            "points": len(self.observations.surface_points_world),
+        }
+
+
+def _mirror(points: FloatArray, point: FloatArray, normal: FloatArray) -> FloatArray:
+    return points - 2.0 * ((points - point) @ normal)[..., None] * normal
+
+
+def complete_by_symmetry(camera: SurfaceObservations, view: CameraView) -> SymmetryFit | None:
+    """The best-supported vertical symmetry of the seen surface ``camera`` (the depth points'
+    observations, source -1) judged by what ``view`` (the frame's depth) saw, with its
+    completed points; None when no candidate is supported."""
+    seen = camera.surface_points_world
+    if len(seen) < 10:
+        return None
+    points, normals = seen, camera.surface_normals_world
+    centre = np.array([*points[:, :2].mean(axis=0), 0.0])
+    reach = 0.5 * float(np.max(np.ptp(points[:, :2], axis=0))) + 0.01
+    offsets = np.linspace(-reach, reach, OFFSETS)
+    up = np.array([0.0, 0.0, 1.0])
+    turns = [rotation_about_axis(up, math.radians(t)) for t in AXIS_TURNS]
+
+    def copies_of(kind: str, point: FloatArray, direction: FloatArray) -> FloatArray:
+        if kind == "plane":
+            return _mirror(points, point, direction)
+        return np.concatenate([(points - point) @ r.T + point for r in turns])
+
+    def plane(angle: float, offset: float) -> Candidate:
+        normal = np.array([math.cos(angle), math.sin(angle), 0.0])
+        return ("plane", centre + offset * normal, normal)
+
+    def choose(candidates: list[Candidate]) -> Candidate | None:
+        best, best_cost = None, math.inf
+        for candidate in candidates:
+            copies = copies_of(*candidate)
+            refuted = view.empty(copies)
+            hidden = view.hidden(copies) & ~refuted
+            if refuted.mean() > MAX_REFUTED or hidden.mean() < MIN_HIDDEN:
+                continue
+            # How far the copies stand in free space, graded: a plane ahead of the true one
+            # pushes copies out in front of the seen surface, one behind it pushes the copies of
+            # the outline off the object, in front of the table.
+            ahead = view.in_front_m(copies) - VIOLATION_NOISE_M
+            cost = float(np.clip(ahead, 0.0, VIOLATION_CAP_M).mean())
+            if cost < best_cost:
+                best, best_cost = candidate, cost
+        return best
+
+    # A coarse search (planes every 15 degrees, planes and axes a ninth of the width apart) ...
+    step = offsets[1] - offsets[0]
+    angles = [math.pi * k / PLANE_ANGLES for k in range(PLANE_ANGLES)]
+    coarse = [plane(a, o) for a in angles for o in offsets]
+    coarse += [("axis", centre + np.array([dx, dy, 0.0]), up) for dx in offsets for dy in offsets]
+    found = choose(coarse)
+    if found is None:
+        return None
+    # ... then a fine one around its choice (a quarter step, 2.5 degrees).
+    kind, point, direction = found
+    fine_steps = step * np.arange(-4, 5) / 4.0
+    if kind == "plane":
+        angle = math.atan2(direction[1], direction[0])
+        offset = float((point - centre) @ direction)
+        fine = [
+            plane(angle + math.radians(d), offset + o)
+            for d in (-7.5, -5.0, -2.5, 0.0, 2.5, 5.0, 7.5)
+            for o in fine_steps
+        ]
+    else:
+        fine = [
+            ("axis", point + np.array([dx, dy, 0.0]), up) for dx in fine_steps for dy in fine_steps
+        ]
+    found = choose(fine) or found
+    kind, point, direction = found
+    copies = copies_of(kind, point, direction)
+    if kind == "plane":
+        copy_normals = _mirror(normals, np.zeros(3), direction)
+    else:
+        copy_normals = np.concatenate([normals @ r.T for r in turns])
+    refuted = view.empty(copies)
+    hidden = view.hidden(copies) & ~refuted
+    kept = np.flatnonzero(hidden & (copies[:, 2] > 0))
+    kept = kept[thin_to_lattice(copies[kept], CAMERA_SPACING_M)]
+    observations = SurfaceObservations(
+        copies[kept],
+        copy_normals[kept],
+        np.zeros((0, 3)),
+        np.full(len(kept), SYMMETRY_SOURCE, np.int64),
+    )
+    return SymmetryFit(
+        kind,  # type: ignore[arg-type]
+        point,
+        direction,
+        float(refuted.mean()),
+        float(hidden.mean()),
+        observations,
+    )
