@@ -8,7 +8,7 @@ import logging
 import math
 import multiprocessing
 import zlib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, replace
 from functools import partial
@@ -139,11 +139,11 @@ class ObjectRun:
         self,
         config: Config,
         calibration: GelSightLUT,
-        prior: ShapePrior,
+        priors: Mapping[str, ShapePrior],
         obj: EvalObject,
         settings: ExploreSettings,
     ) -> None:
-        self.config, self.calibration, self.prior = config, calibration, prior
+        self.config, self.calibration, self.priors = config, calibration, dict(priors)
         self.settings = settings
         # Seeds from the name: a run on a subset of objects repeats the full run's numbers.
         self.key = zlib.crc32(obj.name.encode())
@@ -173,13 +173,15 @@ class ObjectRun:
             if self.vision_fused.fused is not None
             else self.vision_metrics
         )
+        self.prior = perception.prior(self.vision.prior)
+        """The prior vision used (``auto`` chose it): its decoder refines the shape."""
 
     def perception(self, seed: int) -> LearnedPerception:
         return LearnedPerception(
             self.config,
             camera_position_world=self.config.cameras.rgbd.pose_world_camera()[:3, 3],
             calibration=self.calibration,
-            priors={self.settings.prior: self.prior},
+            priors=self.priors,
             seed=seed,
         )
 
@@ -346,13 +348,13 @@ def _explore(run: ObjectRun, method: str, run_index: int, tick: Callable[[], Non
 def _object_row(
     config: Config,
     calibration: GelSightLUT,
-    prior: ShapePrior,
+    priors: Mapping[str, ShapePrior],
     obj: EvalObject,
     settings: ExploreSettings,
     tick: Callable[[], None] = lambda: None,
 ) -> tuple[dict, Any]:
     """One object's JSON row and its vision latent (``tick`` after every touch)."""
-    run = ObjectRun(config, calibration, prior, obj, settings)
+    run = ObjectRun(config, calibration, priors, obj, settings)
     try:
         methods = {}
         for method in settings.methods:
@@ -361,7 +363,14 @@ def _object_row(
             methods[method] = mean_runs(results) if METHODS[method][0] == "random" else results[0]
     finally:
         run.close()
-    row = {"name": obj.name, "category": obj.category, "yaw_deg": run.yaw_deg, "methods": methods}
+    row = {
+        "name": obj.name,
+        "category": obj.category,
+        "yaw_deg": run.yaw_deg,
+        "prior": run.vision.prior,
+        "input": run.vision.input,
+        "methods": methods,
+    }
     return row, run.vision.latent
 
 
@@ -376,7 +385,7 @@ def run_explore_benchmark(
     objects: Sequence[EvalObject],
     settings: ExploreSettings,
     *,
-    prior: ShapePrior,
+    priors: Mapping[str, ShapePrior],
     calibration: GelSightLUT,
     workers: int = 1,
     progress: bool = True,
@@ -386,10 +395,12 @@ def run_explore_benchmark(
     and more (docs/explore.md); a ``summary`` (:func:`summarise`) and the ``timing``
     (:func:`latency_figures`).
     ``workers`` > 1 runs objects in that many processes (each with this process's torch
-    thread count); every object is seeded by its name, so the result does not change."""
+    thread count); every object is seeded by its name, so the result does not change.
+    ``priors`` are the loaded priors by name (``settings.prior`` one of them, or ``auto``)."""
     from tqdm import tqdm
 
-    prior.check_grid(config.voxel_grid.grid(config.cameras.rgbd.pose_world_camera()[:3, 3]))
+    for prior in priors.values():
+        prior.check_grid(config.voxel_grid.grid(config.cameras.rgbd.pose_world_camera()[:3, 3]))
     touches_per_object = settings.touches * sum(
         settings.random_runs if METHODS[m][0] == "random" else 1 for m in settings.methods
     )
@@ -403,7 +414,7 @@ def run_explore_benchmark(
     if workers <= 1:
         for obj in objects:
             bar.set_postfix_str(obj.name)
-            results.append(_object_row(config, calibration, prior, obj, settings, bar.update))
+            results.append(_object_row(config, calibration, priors, obj, settings, bar.update))
     else:
         context = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(workers, mp_context=context) as pool:
@@ -412,7 +423,7 @@ def run_explore_benchmark(
                     with_threads,
                     torch.get_num_threads(),
                     _object_row,
-                    *(config, calibration, prior, obj, settings),
+                    *(config, calibration, priors, obj, settings),
                 )
                 for obj in objects
             ]
@@ -423,17 +434,18 @@ def run_explore_benchmark(
     bar.close()
     rows = [row for row, _ in results]
     first_latent = results[0][1] if results else None
+    first = priors[rows[0]["prior"]] if rows else next(iter(priors.values()))
     models = config.models
     timing = latency_figures(
-        prior,
+        first,
         first_latent,
         settings.timing_resolutions,
         models.refine_learning_rate,
         models.refine_iterations_per_touch,
     )
     return {
-        "prior": prior.name,
-        "preset": prior.preset.name,
+        "prior": settings.prior,
+        "preset": first.preset.name,
         "input": settings.input_mode,
         "touches": settings.touches,
         "methods_run": list(settings.methods),

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import math
 import multiprocessing
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from functools import partial
@@ -235,14 +235,15 @@ def refiner(run: ObjectRun, perception: LearnedPerception, update: str) -> Refin
 def object_bounds(
     config: Config,
     calibration: GelSightLUT,
-    prior: ShapePrior,
+    priors: Mapping[str, ShapePrior],
     obj: EvalObject,
     settings: BoundsSettings,
 ) -> dict[str, Any]:
     """One object's row of the bounds JSON."""
     touches = max(settings.touch_counts)
     explore = ExploreSettings(touches=touches, prior=settings.prior, seed=settings.seed)
-    run = ObjectRun(config, calibration, prior, obj, explore)
+    run = ObjectRun(config, calibration, priors, obj, explore)
+    prior = run.prior
     try:
         vision = run.vision
         assert vision.latent is not None
@@ -311,14 +312,14 @@ def run_bounds(
     objects: Sequence[EvalObject],
     settings: BoundsSettings,
     *,
-    prior: ShapePrior,
+    priors: Mapping[str, ShapePrior],
     calibration: GelSightLUT,
     workers: int = 1,
 ) -> dict[str, Any]:
     """The bounds JSON: per object ``vision_mm``, ``floor_mm``, ``latent_fit_mm``, the ideal
     touch curves of every update (``ideal_touches_fused_mm``, ``ideal_touches_mm``, after 0..K
     touches; the oracle's with ``oracle_candidates``) and a ``summary`` (docs/explore.md)."""
-    args = [(config, calibration, prior, obj, settings) for obj in objects]
+    args = [(config, calibration, priors, obj, settings) for obj in objects]
     if workers <= 1:
         rows = [object_bounds(*a) for a in args]
     else:
@@ -335,7 +336,7 @@ def run_bounds(
         calibration=calibration,
     ).fusion_settings
     return {
-        "prior": prior.name,
+        "prior": settings.prior,
         "seed": settings.seed,
         "fit": {"steps": settings.fit_steps, "learning_rate": settings.fit_learning_rate},
         "oracle_candidates": settings.oracle_candidates,

@@ -306,11 +306,20 @@ def _objects(args: argparse.Namespace) -> list[EvalObject]:
     return held_out_objects(args.categories, 1)
 
 
-def _load_prior(config: Config, name: str) -> ShapePrior:
-    """The config's ``[models]`` prior, or the one named instead."""
-    from models.prior.shape_prior import ShapePrior
+def _load_priors(config: Config, name: str) -> dict[str, ShapePrior]:
+    """The prior ``name`` of the config's ``[models]`` weights by name, or for ``auto`` every
+    prior of its preset (the choice is made per image)."""
+    from models.prior.auto import AUTO
+    from models.prior.shape_prior import ShapePrior, available_priors
 
-    return ShapePrior.from_config(replace(config.models, prior=name))
+    models = config.models
+    names = [name]
+    if name == AUTO:
+        listed = available_priors(models.weights_dir or None)
+        names = sorted(
+            n for n, specs in listed.items() if models.preset in {s.preset for s in specs}
+        )
+    return {n: ShapePrior.from_config(replace(models, prior=n)) for n in names}
 
 
 def _run_and_print(
@@ -328,7 +337,7 @@ def _run_and_print(
         config,
         _objects(args),
         settings,
-        prior=_load_prior(config, prior_name),
+        priors=_load_priors(config, prior_name),
         calibration=load_calibration(config),
         workers=args.workers,
     )

@@ -203,7 +203,7 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
         "--no-symmetry", action="store_true", help="RGB-D without the symmetry completion"
     )
     prior.add_argument(
-        "--no-pose-fit", action="store_true", help="RGB-D without the prior's pose fit to depth"
+        "--pose-fit", action="store_true", help="RGB-D: fit the prior's pose to the depth first"
     )
     prior.add_argument("--views", type=int, default=4, help="random object yaws per object")
     prior.add_argument(
@@ -335,12 +335,11 @@ def evaluation_camera(config: Config) -> BenchCamera:
 
 
 def eval_prior(args: argparse.Namespace) -> int:
+    from controller.perception.learned import vision_settings
     from models.prior.auto import AUTO
     from models.prior.evaluation import EvalObject, evaluate_prior, held_out_objects
     from models.prior.shape_prior import ShapePrior, available_priors
     from models.shapes import load_mesh_file
-    from models.touch.fused import FusionSettings
-    from models.vision import VisionSettings
 
     config = load_config(args.config)
     models = dataclasses.replace(
@@ -378,9 +377,7 @@ def eval_prior(args: argparse.Namespace) -> int:
         evaluation_camera(config),
         views=args.views,
         input_mode="rgbd" if args.input == "auto" else args.input,
-        settings=VisionSettings(
-            fusion=FusionSettings(pose_fit=not args.no_pose_fit), symmetry=not args.no_symmetry
-        ),
+        settings=vision_settings(models, pose_fit=args.pose_fit, symmetry=not args.no_symmetry),
         seed=args.seed,
     )
     print_json(result, args.json)

@@ -21,7 +21,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from controller.config import Config
+from controller.config import Config, ModelsConfig
 from controller.perception.protocol import (
     ShapeEstimate,
     TargetFilter,
@@ -345,8 +345,7 @@ class LearnedPerception:
 
     @property
     def vision_settings(self) -> VisionSettings:
-        """The session's start: the depth fused with the touches' kernel and prior deviation."""
-        return VisionSettings(fusion=replace(self.fusion_settings, pose_fit=False))
+        return vision_settings(self.config.models)
 
     @property
     def fusion_settings(self) -> FusionSettings:
@@ -428,6 +427,17 @@ class LearnedPerception:
             pad_grid_world(start, self.pad_size_m, spacing),
             pad_grid_world(end, self.pad_size_m, spacing),
         )
+
+
+def vision_settings(
+    models: ModelsConfig, *, pose_fit: bool = False, symmetry: bool = True
+) -> VisionSettings:
+    """How a session's start is made (and ``eval prior`` scores it): the depth fused with the
+    touches' kernel and prior deviation, without the prior's pose fit unless asked."""
+    fusion = FusionSettings(
+        support_m=models.fusion_support_m, prior_std_m=models.fusion_prior_std_m, pose_fit=pose_fit
+    )
+    return VisionSettings(fusion=fusion, symmetry=symmetry)
 
 
 def make_perception(config: Config, devices: Devices | None = None) -> LearnedPerception:

@@ -197,7 +197,7 @@ def test_benchmark_json_on_a_small_object(config, calibration, tmp_path: Path) -
         config,
         [EvalObject("small_box", "file", box)],
         settings,
-        prior=ShapePrior.untrained("cpu"),
+        priors={"general": ShapePrior.untrained("cpu")},
         calibration=calibration,
         progress=False,
     )
@@ -330,7 +330,7 @@ def test_the_issue_command_runs_the_benchmark_as_asked(
         "file_objects",
         lambda paths, up_axis, fit_size_m: [(path.name, up_axis) for path in paths],
     )
-    monkeypatch.setattr(bench_cli, "_load_prior", lambda config, name: f"prior {name}")
+    monkeypatch.setattr(bench_cli, "_load_priors", lambda config, name: f"prior {name}")
     monkeypatch.setattr(learned, "load_calibration", lambda config: "calibration")
     monkeypatch.setattr(summary_module, "plot_curves", lambda result, path: calls.update(plot=path))
     monkeypatch.setattr(torch, "set_num_threads", lambda n: calls.update(threads=n))
@@ -353,7 +353,7 @@ def test_the_issue_command_runs_the_benchmark_as_asked(
         input_mode="rgbd",
         prior="box",
     )
-    assert calls["prior"] == "prior box" and calls["calibration"] == "calibration"
+    assert calls["priors"] == "prior box" and calls["calibration"] == "calibration"
     assert calls["workers"] == 2 and calls["threads"] == 1
     assert calls["plot"] == plot
     assert json.loads(out.read_text())["summary"] == {"objects": 2}
@@ -378,7 +378,7 @@ def test_a_mesh_file_runs_through_the_benchmark_deterministically(
             config,
             objects,
             settings,
-            prior=ShapePrior.untrained("cpu"),
+            priors={"general": ShapePrior.untrained("cpu")},
             calibration=calibration,
             progress=False,
         )

@@ -184,7 +184,7 @@ def test_bounds_json_on_a_small_object(calibration) -> None:
         config,
         [small_box()],
         BoundsSettings(touch_counts=(1,), fit_steps=3, oracle_candidates=2),
-        prior=ShapePrior.untrained("cpu"),
+        priors={"general": ShapePrior.untrained("cpu")},
         calibration=calibration,
     )
     json.dumps(result, allow_nan=False)
@@ -206,8 +206,8 @@ def test_ideal_touches_bend_the_fused_surface_through_their_contacts(calibration
     """The fused curve: its estimate is the fused shape, whose surface passes through what the
     ideal touches measured (their contact points), and it lowers the error from vision."""
     config = Config()
-    prior = ShapePrior.untrained("cpu")
-    run = ObjectRun(config, calibration, prior, small_box(), ExploreSettings(touches=2))
+    priors = {"general": ShapePrior.untrained("cpu")}
+    run = ObjectRun(config, calibration, priors, small_box(), ExploreSettings(touches=2))
     try:
         perception = run.perception(0)
         refine = refiner(run, perception, "fused")
@@ -240,7 +240,7 @@ def test_the_bounds_command_runs_the_bounds_as_asked(
 
     monkeypatch.setattr(explore_bounds, "run_bounds", run)
     monkeypatch.setattr(evaluation, "held_out_objects", lambda categories, n: [(categories, n)])
-    monkeypatch.setattr(bench_cli, "_load_prior", lambda config, name: f"prior {name}")
+    monkeypatch.setattr(bench_cli, "_load_priors", lambda config, name: f"prior {name}")
     monkeypatch.setattr(learned, "load_calibration", lambda config: "calibration")
     monkeypatch.setattr(torch, "set_num_threads", lambda n: calls.update(threads=n))
     out = tmp_path / "b.json"
@@ -248,7 +248,7 @@ def test_the_bounds_command_runs_the_bounds_as_asked(
     assert main([*argv, "--json", str(out), "--prior", "box"]) == 0
     assert calls["settings"] == BoundsSettings(touch_counts=(10, 30), prior="box")
     assert len(calls["objects"]) == 1 and calls["objects"][0][1] == 1  # one per category
-    assert calls["prior"] == "prior box" and calls["calibration"] == "calibration"
+    assert calls["priors"] == "prior box" and calls["calibration"] == "calibration"
     assert calls["workers"] == 2 and calls["threads"] == 1
     assert json.loads(out.read_text())["summary"] == {"objects": 1}
     assert main([*argv, "--prior", "box", "--updates", "prior"]) == 0
