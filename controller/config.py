@@ -195,7 +195,9 @@ class VoxelGridConfig:
 
 @dataclass(frozen=True)
 class ModelsConfig:
-    prior: str = "general"
+    prior: str = "auto"
+    """The prior a session uses: a name in the weights folder's ``priors.json``, or "auto" (the
+    one whose shape best explains each image, of all of the preset's; docs/prior.md)."""
     preset: Literal["cpu", "paper"] = "cpu"
     weights_dir: str = ""
     """Empty = the weights shipped with the package."""

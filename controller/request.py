@@ -30,7 +30,7 @@ class ExploreRequest:
     update: Literal["fused", "prior", "direct"] = "fused"
     input: Literal["auto", "rgb", "rgbd"] = "auto"
     """auto: RGB-D when the camera gives depth (the Kinect v2 and the bench do), RGB otherwise."""
-    prior: str = "general"
+    prior: str = "auto"
 
     MAX_TOUCHES_RANGE: ClassVar[tuple[int, int]] = (MAX_TOUCHES.low, MAX_TOUCHES.high)
 

@@ -21,7 +21,12 @@ from numpy.typing import NDArray
 
 from models.geometry import rotation_about_axis
 from models.prior.carving import CameraView
-from models.touch.observations import CAMERA_SPACING_M, SurfaceObservations, thin_to_lattice
+from models.touch.observations import (
+    CAMERA_SPACING_M,
+    MAX_CAMERA_POINTS,
+    SurfaceObservations,
+    thin_to_count,
+)
 
 FloatArray = NDArray[np.float64]
 Candidate = tuple[str, FloatArray, FloatArray]
@@ -148,7 +153,7 @@ def complete_by_symmetry(camera: SurfaceObservations, view: CameraView) -> Symme
     refuted = view.empty(copies)
     hidden = view.hidden(copies) & ~refuted
     kept = np.flatnonzero(hidden & (copies[:, 2] > 0))
-    kept = kept[thin_to_lattice(copies[kept], CAMERA_SPACING_M)]
+    kept = kept[thin_to_count(copies[kept], CAMERA_SPACING_M, MAX_CAMERA_POINTS)]
     observations = SurfaceObservations(
         copies[kept],
         copy_normals[kept],

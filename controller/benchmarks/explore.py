@@ -96,7 +96,7 @@ class ExploreSettings:
     random_runs: int = 10
     oracle_candidates: int = 4
     input_mode: Literal["auto", "rgb", "rgbd"] = "auto"
-    prior: str = "general"
+    prior: str = "auto"
     seed: int = 0
     timing_resolutions: tuple[int, ...] = (64, 128)
     """Select and refine latency at these resolutions (:func:`latency_figures`; empty: none)."""

@@ -95,7 +95,7 @@ class BoundsSettings:
     fit_learning_rate: float = 1e-2
     oracle_candidates: int = 0
     """Also the ideal touches chosen by the truth among this many random targets each (0: no)."""
-    prior: str = "general"
+    prior: str = "auto"
     seed: int = 0
     updates: tuple[str, ...] = UPDATES
     """The shape updates with ideal touches (``fused``, ``prior``)."""

@@ -149,9 +149,14 @@ class LearnedPerception:
         return frozenset(names | {AUTO}) if names else frozenset()
 
     def warm_up(self, prior_name: str) -> None:
-        """Run one refinement step on a dummy touch: the first ``torch.optim.Adam`` of a process
-        imports ``torch._dynamo`` (~1.3 s here), which would otherwise land on the first touch."""
-        prior = self.prior(prior_name)
+        """Load the prior (for ``auto`` every prior of the preset: bad weights fail here, at
+        start-up) and run one refinement step on a dummy touch: the first ``torch.optim.Adam``
+        of a process imports ``torch._dynamo`` (~1.3 s here), which would otherwise land on the
+        first touch."""
+        names = sorted(self.prior_names() - {AUTO}) if prior_name == AUTO else [prior_name]
+        loaded = [self.prior(name) for name in names]
+        # No prior at all: the error that lists what the weights folder has.
+        prior = loaded[0] if loaded else self.prior(prior_name)
         resolution = self.grid.resolution
         dummy = VoxelConstraints.from_voxels(resolution, [(0, 0, 0)], np.zeros((0, 3)))
         latent = torch.zeros(LATENT_DIM, device=prior.device)

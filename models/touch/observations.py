@@ -156,6 +156,20 @@ class SurfaceObservations:
 CAMERA_SPACING_M = 0.006
 """Depth points are thinned to this lattice: the camera's noise (millimetres) is far coarser
 than the touches', and the process's cost is cubic in its points."""
+MAX_CAMERA_POINTS = 500
+"""... and to a coarser one where a large object would leave more (a 30 cm object's visible side
+holds ~1,500 points at 6 mm: seconds of fitting; the field varies over the kernel's 35 mm)."""
+
+
+def thin_to_count(points: FloatArray, spacing_m: float, count: int) -> NDArray[np.int64]:
+    """:func:`thin_to_lattice` at ``spacing_m``, coarsened until at most about ``count`` remain."""
+    keep = thin_to_lattice(points, spacing_m)
+    while len(keep) > count:
+        spacing_m *= 1.25
+        keep = thin_to_lattice(points, spacing_m)
+    return keep
+
+
 CAMERA_NORMAL_RADIUS_M = 0.008
 CAMERA_FREE_OFFSETS_M = (0.005, 0.015)
 """Free points in front of each depth point, toward the camera (beyond the depth noise)."""
@@ -171,7 +185,7 @@ def camera_observations(
     if len(points) == 0:
         return SurfaceObservations.none()
     camera = np.asarray(camera_position_world, dtype=float).reshape(3)
-    surface = points[thin_to_lattice(points, CAMERA_SPACING_M)]
+    surface = points[thin_to_count(points, CAMERA_SPACING_M, MAX_CAMERA_POINTS)]
     to_camera = camera - surface
     to_camera /= np.linalg.norm(to_camera, axis=1, keepdims=True)
     normals = to_camera.copy()

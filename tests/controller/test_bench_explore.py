@@ -114,7 +114,7 @@ def test_refinement_writes_the_measured_voxels_into_the_shape(
         vision_probabilities=np.full(shape, 0.5, np.float32),
         vision_latent=latent,
     )
-    request = ExploreRequest(update="prior")
+    request = ExploreRequest(update="prior", prior="general")
     refined = perception.refine(vision, [outcome], request)
     flat = refined.probabilities.reshape(-1)
     constraints = perception.constraints([outcome], perception.grid)
@@ -192,6 +192,7 @@ def test_benchmark_json_on_a_small_object(config, calibration, tmp_path: Path) -
         random_runs=2,
         timing_resolutions=(),
         input_mode="rgb",  # RGB-D: the fused methods start from the depth fused in
+        prior="general",
     )
     result = run_explore_benchmark(
         config,
@@ -371,6 +372,7 @@ def test_a_mesh_file_runs_through_the_benchmark_deterministically(
         methods=("active-direct", "oracle-prior"),
         oracle_candidates=1,
         timing_resolutions=(),
+        prior="general",
     )
 
     def run() -> dict:

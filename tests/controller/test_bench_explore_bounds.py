@@ -183,7 +183,7 @@ def test_bounds_json_on_a_small_object(calibration) -> None:
     result = run_bounds(
         config,
         [small_box()],
-        BoundsSettings(touch_counts=(1,), fit_steps=3, oracle_candidates=2),
+        BoundsSettings(touch_counts=(1,), fit_steps=3, oracle_candidates=2, prior="general"),
         priors={"general": ShapePrior.untrained("cpu")},
         calibration=calibration,
     )
@@ -207,7 +207,9 @@ def test_ideal_touches_bend_the_fused_surface_through_their_contacts(calibration
     ideal touches measured (their contact points), and it lowers the error from vision."""
     config = Config()
     priors = {"general": ShapePrior.untrained("cpu")}
-    run = ObjectRun(config, calibration, priors, small_box(), ExploreSettings(touches=2))
+    run = ObjectRun(
+        config, calibration, priors, small_box(), ExploreSettings(touches=2, prior="general")
+    )
     try:
         perception = run.perception(0)
         refine = refiner(run, perception, "fused")

@@ -14,7 +14,7 @@ from controller.request import (
     parse_explore_request,
 )
 
-PRIORS = frozenset({"general", "box"})
+PRIORS = frozenset({"auto", "general", "box"})  # as the learned perception lists them
 
 
 def parse(body: bytes | str, priors: frozenset[str] = PRIORS) -> ExploreRequest:
@@ -35,7 +35,10 @@ def test_valid_requests_over_the_defaults() -> None:
 @pytest.mark.parametrize(
     ("body", "message"),
     [
-        ({"prior": "nosuchprior"}, "'prior' must be one of 'box', 'general', got 'nosuchprior'"),
+        (
+            {"prior": "nosuchprior"},
+            "'prior' must be one of 'auto', 'box', 'general', got 'nosuchprior'",
+        ),
         ({"prior": "../../etc/passwd"}, "'prior' must be a name of 1..64 letters"),
         ({"prior": "x" * 65}, "'prior' must be a name of 1..64 letters"),
         ({"prior": ""}, "'prior' must be a name of 1..64 letters"),

@@ -120,7 +120,7 @@ async def test_refused_requests_do_not_move_the_arm(served) -> None:
     client = await asyncio.to_thread(Client, client_config)
     try:
         for body, field in [
-            ({"prior": "nosuchprior"}, "'prior' must be one of 'box', 'general'"),
+            ({"prior": "nosuchprior"}, "'prior' must be one of 'auto', 'box', 'general'"),
             ({"prior": "../../etc/passwd"}, "'prior' must be a name"),
             ({"prior": "x" * 1_000_000}, "request is too large"),
             ({"prior": "x" * 10_000}, "'prior' must be a name"),

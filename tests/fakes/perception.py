@@ -21,6 +21,7 @@ from controller.perception.protocol import (
 from controller.request import ExploreRequest
 from drivers.base import RGBDFrame
 from drivers.factory import Devices
+from models.prior.auto import AUTO
 from models.prior.shape_prior import available_priors
 
 
@@ -35,7 +36,7 @@ class CylinderPerception:
 
     def prior_names(self) -> frozenset[str]:
         # The names the learned perception would accept; the cylinder does not depend on them.
-        return frozenset(available_priors(self.weights_dir or None))
+        return frozenset(available_priors(self.weights_dir or None)) | {AUTO}
 
     def reconstruct(self, frame: RGBDFrame, request: ExploreRequest) -> ShapeEstimate:
         self.reconstruct_calls += 1
