@@ -7,6 +7,9 @@
 # (the data is rebuilt bit-exact from its seeds on a new machine), training resumes from its
 # checkpoint, and --max-minutes counts the time of earlier runs. The runs go one after the other
 # with both cores: side by side, two checkpoints with optimizer state would exceed 40 MB.
+# Its weights landed in models/prior/weights/ (object_frame_*, RECIPE.md: the calibration step
+# follows this script) and its checkpoints left training_state/: a run now trains from the start
+# (about 10 hours on 2 cores, over several sessions through the committed checkpoints).
 # Run from the repository root:
 #   nohup scripts/train_object_frame_priors.sh > logs/train_object_frame_priors.log 2>&1 &
 set -euo pipefail
