@@ -1,4 +1,4 @@
-"""Shape metrics: voxel IoU, Chamfer distance and F-score in millimetres, mesh extraction.
+"""Shape metrics: voxel IoU, Chamfer distance and F-score in millimetres.
 
 Definitions (also in docs/prior.md):
 
@@ -10,8 +10,8 @@ Definitions (also in docs/prior.md):
 * F-score at d mm (Tatarchenko et al. 2019): harmonic mean of precision (predicted points within d
   of the ground truth) and recall (ground-truth points within d of the prediction).
 
-Predicted surfaces come from the voxel probabilities by marching cubes at the 0.5 level
-(scikit-image), placed in the world by the :class:`models.geometry.VoxelGrid` registration.
+Predicted surfaces are world meshes: every estimate's, voxels or fused field, through one
+extraction (``ShapeEstimate.surface_mesh``, :func:`models.touch.fused.prior_surface`).
 """
 
 from __future__ import annotations
@@ -22,9 +22,6 @@ import numpy as np
 import torch
 import trimesh
 from scipy.spatial import cKDTree
-from skimage.measure import marching_cubes
-
-from models.geometry import VoxelGrid
 
 SURFACE_SAMPLES = 10_000
 
@@ -46,27 +43,6 @@ def voxel_iou(
     union = (pred | true).sum(1).float()
     iou = torch.where(union > 0, intersection / union.clamp(min=1), torch.ones_like(union))
     return float(iou.mean())
-
-
-def voxel_surface_mesh(
-    probabilities: np.ndarray, grid: VoxelGrid, level: float = 0.5
-) -> trimesh.Trimesh:
-    """Marching-cubes surface (world frame, metres) of a probability grid indexed [i, j, k].
-
-    The grid is padded with zeros so the surface is closed; an empty or full grid gives an
-    empty mesh.
-    """
-    volume = np.pad(np.asarray(probabilities, dtype=np.float32), 1)
-    if volume.max() < level or volume.min() > level:
-        return trimesh.Trimesh()
-    vertices, faces, _, _ = marching_cubes(volume, level)
-    # Sample (index) coordinates are voxel centres: voxel (i, j, k) centre = i + 0.5, minus pad.
-    vertices_voxel = vertices - 1.0 + 0.5
-    # Outward normals: skimage's winding is outward for a left-handed index frame (like the
-    # paper's a_x = (-1, 0, 0) axes); right-handed grids (axes facing the camera) flip it.
-    if np.linalg.det(np.asarray(grid.axes_world, dtype=float)) > 0:
-        faces = faces[:, ::-1]
-    return trimesh.Trimesh(grid.voxel_to_world(vertices_voxel), faces, process=False)
 
 
 def sample_surface(
@@ -106,17 +82,6 @@ def surface_metrics(predicted_points: np.ndarray, true_points: np.ndarray) -> Su
         fscore_2mm=fscore(2.0),
         fscore_5mm=fscore(5.0),
     )
-
-
-def mesh_metrics(
-    probabilities: np.ndarray,
-    grid: VoxelGrid,
-    true_mesh_world: trimesh.Trimesh,
-    count: int = SURFACE_SAMPLES,
-    seed: int = 0,
-) -> SurfaceMetrics:
-    """Chamfer / F-score of a predicted voxel grid's surface against the true mesh (world)."""
-    return surfaces_metrics(voxel_surface_mesh(probabilities, grid), true_mesh_world, count, seed)
 
 
 def surfaces_metrics(

@@ -4,11 +4,12 @@
    the predicted depth where it returned; with several priors (``auto``) the one whose shape best
    covers the seen silhouette is used (:mod:`models.prior.auto`). Space the camera saw empty is
    carved out of every prediction (:mod:`models.prior.carving`).
-2. With depth (``input = "rgbd"``) the visible side's depth points become surface and free-space
-   observations (:func:`models.touch.observations.camera_observations`) of the fused field that
-   touches update later, with the prior as its mean (:mod:`models.touch.fused`): the prior's pose
-   (translation on the table, yaw, scale) is fitted to them first, then the field passes through
-   them. So the session, the benchmarks and ``eval prior --input rgbd`` start from one estimate.
+2. With depth (``input = "rgbd"``, or ``"auto"`` when the frame has depth) the visible side's
+   depth points become surface and free-space observations
+   (:func:`models.touch.observations.camera_observations`) of the fused field that touches update
+   later, with the prior as its mean (:mod:`models.touch.fused`); the field passes through them
+   (the prior's pose is fitted to them first only when ``VisionSettings.fusion.pose_fit``). So
+   the session, the benchmarks and ``eval prior`` start from one estimate.
 3. Symmetry completion (:mod:`models.symmetry`): the seen points mirrored about the best-supported
    vertical plane (or turned about the best vertical axis) are added as weaker observations
    where they do not fall into space the camera saw empty.
@@ -54,6 +55,9 @@ class VisionSettings:
     meshes, Chamfer 16.0 mm with the fit, 12.5 mm without; docs/prior.md)."""
     symmetry: bool = True
     """Complete the unseen side by the best-supported symmetry (RGB-D only), when one is."""
+    use_variance: bool = True
+    """The fused field's P(inside) with its uncertainty (``FusedShape.probabilities``), as the
+    session's ``fusion_policy = "variance"`` reads it."""
 
 
 @dataclass
@@ -123,7 +127,7 @@ def estimate_from_frame(
     )
     return replace(
         estimate,
-        probabilities=fused.probabilities(prediction.grid),
+        probabilities=fused.probabilities(prediction.grid, use_variance=settings.use_variance),
         camera_observations=observations,
         fused=fused,
         symmetry=symmetry,

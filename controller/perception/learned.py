@@ -442,7 +442,8 @@ def vision_settings(
     fusion = FusionSettings(
         support_m=models.fusion_support_m, prior_std_m=models.fusion_prior_std_m, pose_fit=pose_fit
     )
-    return VisionSettings(fusion=fusion, symmetry=symmetry)
+    variance = models.fusion_policy == "variance"
+    return VisionSettings(fusion=fusion, symmetry=symmetry, use_variance=variance)
 
 
 def make_perception(config: Config, devices: Devices | None = None) -> LearnedPerception:

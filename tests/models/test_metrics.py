@@ -1,4 +1,4 @@
-"""Voxel IoU, Chamfer distance and F-score definitions, marching-cubes surfaces."""
+"""Voxel IoU, Chamfer distance and F-score definitions, on the estimates' surfaces."""
 
 from __future__ import annotations
 
@@ -7,14 +7,9 @@ import pytest
 import trimesh
 
 from models.geometry import VoxelGrid
-from models.metrics import (
-    mesh_metrics,
-    sample_surface,
-    surface_metrics,
-    voxel_iou,
-    voxel_surface_mesh,
-)
+from models.metrics import sample_surface, surface_metrics, surfaces_metrics, voxel_iou
 from models.shapes import voxelize
+from models.touch.fused import prior_surface
 
 
 def test_voxel_iou() -> None:
@@ -39,17 +34,18 @@ def test_chamfer_is_unsquared_sum_of_both_directions_in_mm(rng: np.random.Genera
     assert surface_metrics(np.zeros((0, 3)), points).chamfer_mm == float("inf")
 
 
-def test_marching_cubes_surface_lies_on_the_voxelised_mesh() -> None:
+def test_a_voxel_estimates_surface_lies_on_the_voxelised_mesh() -> None:
+    """The extraction every estimate's score goes through (``prior_surface``)."""
     grid = VoxelGrid(32, 0.16, axes_world=((0.0, -1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)))
     box = trimesh.creation.box(extents=(0.08, 0.06, 0.1))
     box.apply_translation((0.01, -0.005, 0.05))
     occupancy = voxelize(box, grid).astype(np.float32)
-    surface = voxel_surface_mesh(occupancy, grid)
+    surface = prior_surface(occupancy, grid)
     assert surface.is_watertight and surface.volume > 0  # outward normals
     paper_axes = VoxelGrid(32, 0.16)  # a_x = (-1, 0, 0): a left-handed index frame
-    assert voxel_surface_mesh(occupancy, paper_axes).volume > 0
+    assert prior_surface(voxelize(box, paper_axes).astype(np.float32), paper_axes).volume > 0
     assert np.allclose(surface.bounds, box.bounds, atol=grid.voxel_size_m)
-    metrics = mesh_metrics(occupancy, grid, box, count=10_000)
+    metrics = surfaces_metrics(surface, box, count=10_000)
     assert metrics.chamfer_mm < 1e3 * grid.voxel_size_m  # within a voxel (5 mm) on average
     assert metrics.fscore_5mm > 0.9
     assert len(sample_surface(trimesh.Trimesh(), 10)) == 0
