@@ -133,6 +133,40 @@ def fit_object_grid(
     )
 
 
+HOLD_MARGIN = 1.1
+"""A grid grown to hold the seen points leaves this much room around their extent."""
+
+
+def grid_holding_points(grid: VoxelGrid, points_world: ArrayLike) -> VoxelGrid:
+    """``grid``, grown and moved on the table just enough to hold ``points_world`` (RGB-D: the
+    object's depth points) with :data:`HOLD_MARGIN`; unchanged when it already holds them. The
+    silhouette's frame takes the object as deep as it is wide: a long object seen end-on (a
+    knife, a keyboard) reaches out of it, and its measured surface with it."""
+    points = np.asarray(points_world, dtype=float).reshape(-1, 3)
+    if len(points) == 0:
+        return grid
+    coords = grid.world_to_voxel(points)
+    if np.all((coords >= 0) & (coords <= grid.resolution)):
+        return grid
+    axes = np.asarray(grid.axes_world, dtype=float)
+    origin = np.asarray(grid.origin_world, dtype=float)
+    local = (points - origin) @ axes.T  # along the grid's axes, from its bottom centre
+    low = np.minimum(local.min(axis=0), -0.5 * grid.extent_m)
+    high = np.maximum(local.max(axis=0), 0.5 * grid.extent_m)
+    low[2], high[2] = 0.0, max(float(local[:, 2].max()), grid.extent_m)
+    extent = float(np.clip(HOLD_MARGIN * np.max(high - low), grid.extent_m, EXTENT_RANGE_M[1]))
+    centre = 0.5 * (low + high)
+    centre[2] = 0.0
+    moved = origin + centre @ axes
+    moved[2] = 0.0
+    return VoxelGrid(
+        grid.resolution,
+        extent,
+        (float(moved[0]), float(moved[1]), 0.0),
+        grid.axes_world,
+    )
+
+
 def depth_silhouette(
     depth_m: ArrayLike,
     intrinsics: CameraIntrinsics,

@@ -25,8 +25,15 @@ import torch
 
 from models.camera import CameraIntrinsics
 from models.geometry import VoxelGrid
+from models.object_bound import object_depth_points
 from models.prior.carving import carve, seen_empty_voxels, seen_silhouette
-from models.prior.frame import FrameError, depth_silhouette, fit_object_grid, search_grid
+from models.prior.frame import (
+    FrameError,
+    depth_silhouette,
+    fit_object_grid,
+    grid_holding_points,
+    search_grid,
+)
 from models.prior.networks import (
     NetworkPreset,
     ShapeNet,
@@ -305,12 +312,18 @@ class ShapePrior:
             logits = self.sketches(colour_rgb, crop, sketch_cache)["silhouette_logits"]
             mask = (logits[0, 0] > 0).cpu().numpy()
         try:
-            return fit_object_grid(
+            grid = fit_object_grid(
                 mask, crop.intrinsics, pose_world_camera, search.axes_world, search.resolution
             )
         except FrameError as error:
             log.warning("prior %s: %s; using the search grid", self.name, error)
             return search
+        if depth_m is None:
+            return grid
+        # With depth the object's seen surface is known: the grid holds all of it.
+        return grid_holding_points(
+            grid, object_depth_points(depth_m, intrinsics, pose_world_camera, search)
+        )
 
     def decode(self, latent: torch.Tensor) -> torch.Tensor:
         """Latent (200,) or (B, 200) -> probabilities (N, N, N) or (B, N, N, N) in the grid

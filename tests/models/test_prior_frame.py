@@ -14,6 +14,7 @@ from models.prior.frame import (
     FrameError,
     depth_silhouette,
     fit_object_grid,
+    grid_holding_points,
     search_grid,
 )
 from models.prior.virtual_camera import grid_crop
@@ -83,3 +84,20 @@ def test_depth_silhouette_is_the_object_above_the_table() -> None:
     mask = depth_silhouette(out.depth_m, crop.intrinsics, POSE_WORLD_CAMERA, search_grid(64, axes))
     overlap = np.sum(mask & out.silhouette) / np.sum(mask | out.silhouette)
     assert overlap > 0.9
+
+
+def test_a_long_object_seen_end_on_is_held_by_the_grid_with_depth() -> None:
+    """A 19 cm keyboard-like slab pointing at the camera: the silhouette's frame (the object as
+    deep as it is wide) misses its far end; grown to hold the depth points, the grid holds it,
+    stands on the table, and a grid that already held them stays as it was."""
+    slab = trimesh.creation.box((0.19, 0.06, 0.02))
+    slab.apply_translation((0.0, 0.0, 0.01))
+    axes, crop, seen = _seen(slab)
+    grid = fit_object_grid(seen.silhouette, crop.intrinsics, POSE_WORLD_CAMERA, axes, 64)
+    far_end = slab.vertices
+    assert not np.all((grid.world_to_voxel(far_end) >= 0) & (grid.world_to_voxel(far_end) <= 64))
+    grown = grid_holding_points(grid, far_end)
+    inside = grown.world_to_voxel(far_end)
+    assert np.all((inside >= 0) & (inside <= 64))
+    assert grown.origin_world[2] == 0.0 and grown.axes_world == grid.axes_world
+    assert grid_holding_points(grown, far_end) is grown
