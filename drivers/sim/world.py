@@ -17,7 +17,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -192,12 +192,8 @@ class SimWorld:
         self, pose_world_tcp: NDArray[np.float64], width_m: float
     ) -> Collision | None:
         """First rigid tool part that penetrates the object or the table, or None."""
-        for box in self.tool.rigid_boxes(width_m):
-            pose_world_box = pose_world_tcp @ box.pose_tcp_box
-            if self._box_below_table(pose_world_box, box.half_extents_m):
-                return Collision(box.name, "table")
-            if self._box_hits_object(pose_world_box, box):
-                return Collision(box.name, "object")
+        for box, _, obstacle in self._touching_parts(pose_world_tcp, width_m):
+            return Collision(box.name, obstacle)
         return None
 
     def tool_contact(self, pose_world_tcp: NDArray[np.float64], width_m: float) -> Collision | None:
@@ -207,17 +203,13 @@ class SimWorld:
         along the way that point leaves the obstacle (the compliance of the object, the table
         and the arm's joints, lumped)."""
         deepest: tuple[float, NDArray[np.float64], str, str] | None = None
-        for box in self.tool.rigid_boxes(width_m):
-            pose_world_box = pose_world_tcp @ box.pose_tcp_box
-            for obstacle, hit, penetration in (
-                ("table", self._box_below_table, self._table_penetration),
-                ("object", self._box_hits_object, self._object_penetration),
-            ):
-                if not hit(pose_world_box, box if obstacle == "object" else box.half_extents_m):
-                    continue
-                depth_m, push_world = penetration(pose_world_box, box.half_extents_m)
-                if deepest is None or depth_m > deepest[0]:
-                    deepest = (depth_m, push_world, box.name, obstacle)
+        for box, pose_world_box, obstacle in self._touching_parts(pose_world_tcp, width_m):
+            penetration = (
+                self._table_penetration if obstacle == "table" else self._object_penetration
+            )
+            depth_m, push_world = penetration(pose_world_box, box.half_extents_m)
+            if deepest is None or depth_m > deepest[0]:
+                deepest = (depth_m, push_world, box.name, obstacle)
         if deepest is None:
             return None
         depth_m, push_world, part, obstacle = deepest
@@ -225,6 +217,18 @@ class SimWorld:
         return Collision(
             part, obstacle, depth_m, (float(force[0]), float(force[1]), float(force[2]))
         )
+
+    def _touching_parts(
+        self, pose_world_tcp: NDArray[np.float64], width_m: float
+    ) -> Iterator[tuple[ToolBox, NDArray[np.float64], str]]:
+        """Every rigid tool part in contact, with its world pose and what it meets ("table",
+        then "object"), part by part: lazily, so the first one costs only its own tests."""
+        for box in self.tool.rigid_boxes(width_m):
+            pose_world_box = pose_world_tcp @ box.pose_tcp_box
+            if self._box_below_table(pose_world_box, box.half_extents_m):
+                yield box, pose_world_box, "table"
+            if self._box_hits_object(pose_world_box, box):
+                yield box, pose_world_box, "object"
 
     def _table_penetration(
         self, pose_world_box: NDArray[np.float64], half: NDArray
