@@ -106,15 +106,14 @@ def complete_by_symmetry(camera: SurfaceObservations, view: CameraView) -> Symme
     def choose(candidates: list[Candidate]) -> Candidate | None:
         best, best_cost = None, math.inf
         for candidate in candidates:
-            copies = copies_of(*candidate)
-            refuted = view.empty(copies)
-            hidden = view.hidden(copies) & ~refuted
+            verdict = view.judge(copies_of(*candidate))
+            refuted, hidden = verdict.empty, verdict.hidden & ~verdict.empty
             if refuted.mean() > MAX_REFUTED or hidden.mean() < MIN_HIDDEN:
                 continue
             # How far the copies stand in free space, graded: a plane ahead of the true one
             # pushes copies out in front of the seen surface, one behind it pushes the copies of
             # the outline off the object, in front of the table.
-            ahead = view.in_front_m(copies) - VIOLATION_NOISE_M
+            ahead = verdict.in_front_m - VIOLATION_NOISE_M
             cost = float(np.clip(ahead, 0.0, VIOLATION_CAP_M).mean())
             if cost < best_cost:
                 best, best_cost = candidate, cost
@@ -150,8 +149,8 @@ def complete_by_symmetry(camera: SurfaceObservations, view: CameraView) -> Symme
         copy_normals = _mirror(normals, np.zeros(3), direction)
     else:
         copy_normals = np.concatenate([normals @ r.T for r in turns])
-    refuted = view.empty(copies)
-    hidden = view.hidden(copies) & ~refuted
+    verdict = view.judge(copies)
+    refuted, hidden = verdict.empty, verdict.hidden & ~verdict.empty
     kept = np.flatnonzero(hidden & (copies[:, 2] > 0))
     kept = kept[thin_to_count(copies[kept], CAMERA_SPACING_M, MAX_CAMERA_POINTS)]
     observations = SurfaceObservations(

@@ -35,6 +35,22 @@ half-diagonal."""
 
 
 @dataclass(frozen=True)
+class SeenPoints:
+    """What one image says of some points (each array shaped as the points, less the last axis).
+    Points that project outside the image or lie behind the camera are hidden, not empty."""
+
+    empty: NDArray[np.bool_]
+    """Seen empty: on a background ray, or more than :data:`DEPTH_MARGIN_M` in front of the
+    nearest return around their pixel."""
+    hidden: NDArray[np.bool_]
+    """Out of sight: more than :data:`DEPTH_MARGIN_M` behind the nearest return around their
+    pixel, on a pixel with no return near that is not a background ray, or outside the image."""
+    in_front_m: FloatArray
+    """How far (metres, >= 0) they lie in front of the nearest return around their pixel: 0
+    behind it, off the image, or where no return is near."""
+
+
+@dataclass(frozen=True)
 class CameraView:
     """What one image says of space: per pixel, whether its ray met only background (off the
     grown silhouette, no depth return around it) and the nearest depth return around it (metres,
@@ -85,41 +101,29 @@ class CameraView:
         inside = (z > 0) & (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
         return z, inside, v[inside].astype(np.intp), u[inside].astype(np.intp)
 
-    def empty(self, points_world: ArrayLike) -> NDArray[np.bool_]:
-        """True for points (..., 3) the camera saw empty: on a background ray, or more than
-        :data:`DEPTH_MARGIN_M` in front of the nearest return around their pixel. Points that
-        project outside the image or lie behind the camera are not known to be empty."""
+    def judge(self, points_world: ArrayLike) -> SeenPoints:
+        """What the camera saw of points (..., 3), from one projection (:class:`SeenPoints`)."""
         shape = np.shape(points_world)[:-1]
         z, inside, v, u = self._project(points_world)
         nearest = self.nearest_depth_m[v, u]  # inf where no return: nothing is in front of it
+        returned, z_seen = np.isfinite(nearest), z[inside]
         empty = np.zeros(len(z), bool)
-        empty[inside] = self.empty_ray[v, u] | (
-            np.isfinite(nearest) & (z[inside] < nearest - DEPTH_MARGIN_M)
+        empty[inside] = self.empty_ray[v, u] | (returned & (z_seen < nearest - DEPTH_MARGIN_M))
+        hidden = ~inside
+        hidden[inside] = np.where(
+            returned, z_seen > nearest + DEPTH_MARGIN_M, ~self.empty_ray[v, u]
         )
-        return empty.reshape(shape)
-
-    def in_front_m(self, points_world: ArrayLike) -> FloatArray:
-        """How far (metres, >= 0) each point (..., 3) lies in front of the nearest return around
-        its pixel: 0 behind it, off the image, or where no return is near."""
-        shape = np.shape(points_world)[:-1]
-        z, inside, v, u = self._project(points_world)
-        nearest = self.nearest_depth_m[v, u]
         ahead = np.zeros(len(z))
-        ahead[inside] = np.where(np.isfinite(nearest), np.maximum(nearest - z[inside], 0.0), 0.0)
-        return ahead.reshape(shape)
+        ahead[inside] = np.where(returned, np.maximum(nearest - z_seen, 0.0), 0.0)
+        return SeenPoints(empty.reshape(shape), hidden.reshape(shape), ahead.reshape(shape))
+
+    def empty(self, points_world: ArrayLike) -> NDArray[np.bool_]:
+        """:attr:`SeenPoints.empty` of the points."""
+        return self.judge(points_world).empty
 
     def hidden(self, points_world: ArrayLike) -> NDArray[np.bool_]:
-        """True for points (..., 3) out of the camera's sight: behind the nearest return around
-        their pixel by more than :data:`DEPTH_MARGIN_M`, on a pixel with no return around it that
-        is not a background ray, or outside the image or behind the camera."""
-        shape = np.shape(points_world)[:-1]
-        z, inside, v, u = self._project(points_world)
-        hidden = ~inside
-        nearest = self.nearest_depth_m[v, u]
-        hidden[inside] = np.where(
-            np.isfinite(nearest), z[inside] > nearest + DEPTH_MARGIN_M, ~self.empty_ray[v, u]
-        )
-        return hidden.reshape(shape)
+        """:attr:`SeenPoints.hidden` of the points."""
+        return self.judge(points_world).hidden
 
 
 def seen_silhouette(
