@@ -164,6 +164,56 @@ def _fruit(rng: np.random.Generator) -> Manifold:
     return roll.trim_by_plane((0.0, 0.0, 1.0), -0.1)
 
 
+def _limb(start: np.ndarray, end: np.ndarray, radius: float) -> Manifold:
+    """A round-ended limb (a capsule) from ``start`` to ``end``."""
+    axis = end - start
+    length = float(np.linalg.norm(axis))
+    tube = solids.cylinder(radius, length) + Manifold.sphere(radius, 16)
+    tube = tube + Manifold.sphere(radius, 16).translate((0.0, 0.0, length))
+    tilt = math.degrees(math.acos(np.clip(axis[2] / length, -1.0, 1.0)))
+    heading = math.degrees(math.atan2(axis[1], axis[0]))
+    return tube.rotate((0.0, tilt, 0.0)).rotate((0.0, 0.0, heading)).translate(tuple(start))
+
+
+def _creature(rng: np.random.Generator) -> Manifold:
+    """An animal or figurine: an ellipsoid body on two or four legs, a head, maybe a tail.
+
+    Figurines, toys and ornaments are mostly limbed bodies that no primitive family draws: a
+    four-legged body (long along x) half the time, an upright body on two legs otherwise.
+    """
+    upright = rng.random() < 0.5
+    a, b, c = (rng.uniform(0.25, 0.5), rng.uniform(0.2, 0.35), rng.uniform(0.4, 0.8))
+    if not upright:
+        a = rng.uniform(0.6, 1.0)
+        b, c = rng.uniform(0.3, 0.6) * a, rng.uniform(0.2, 0.45)
+    leg_length = rng.uniform(0.15, 0.8) * (c if upright else 2 * c + 0.2)
+    centre = np.array([0.0, 0.0, leg_length + 0.7 * c])
+    parts = [solids.ellipsoid(a, b, c, segments=32).translate(tuple(centre))]
+    leg_radius = rng.uniform(0.25, 0.5) * min(b, c)
+    hips = [(0.0, 0.6 * b)] if upright else [(0.6 * a, 0.6 * b), (-0.6 * a, 0.6 * b)]
+    for x, y in hips:
+        for side in (1.0, -1.0):
+            hip = centre + np.array([x, side * y, -0.5 * c])
+            foot = np.array([x + rng.uniform(-0.1, 0.1), side * y * rng.uniform(0.8, 1.3), 0.0])
+            parts.append(_limb(hip, foot + np.array([0.0, 0.0, leg_radius]), leg_radius))
+    head_size = rng.uniform(0.3, 0.6) * (b + c) / 2
+    if upright:
+        head = centre + np.array([0.0, 0.0, c + 0.6 * head_size])
+        arm = np.array([rng.uniform(-0.3, 0.3), b + 0.3 * c, -0.3 * c])
+        for side in (1.0, -1.0):
+            shoulder = centre + np.array([0.0, side * 0.8 * b, 0.5 * c])
+            parts.append(_limb(shoulder, centre + arm * [1.0, side, 1.0], 0.7 * leg_radius))
+    else:
+        head = centre + np.array([a + 0.4 * head_size, 0.0, rng.uniform(0.3, 1.5) * c])
+        parts.append(_limb(centre + np.array([0.7 * a, 0.0, 0.3 * c]), head, 0.6 * head_size))
+        if rng.random() < 0.6:
+            tail_end = centre + np.array([-a - rng.uniform(0.2, 0.6), 0.0, rng.uniform(-c, c)])
+            parts.append(_limb(centre - [0.8 * a, 0.0, 0.0], tail_end, 0.3 * leg_radius))
+    stretch = rng.uniform(0.8, 1.3, 3) * [1.0, 0.8, 1.0]
+    parts.append(solids.ellipsoid(*(head_size * stretch), segments=24).translate(tuple(head)))
+    return solids.union(parts)
+
+
 _FAMILIES: dict[str, Callable[[np.random.Generator], Manifold]] = {
     "superquadric": _superquadric,
     "revolved": _revolved,
@@ -172,6 +222,7 @@ _FAMILIES: dict[str, Callable[[np.random.Generator], Manifold]] = {
     "primitive_union": _primitive_union,
     "blob": _blob,
     "fruit": _fruit,
+    "creature": _creature,
 }
 
 FAMILIES: tuple[str, ...] = tuple(_FAMILIES)

@@ -37,7 +37,7 @@ def main() -> None:
     shape, sketch = ShapeNet(preset), SketchNet(preset)
     load_weights(shape, args.shape_weights)
     load_weights(sketch, args.sketch_weights)
-    config = TrainConfig(stage="shape", data_dir=str(args.data), out_dir="", batch_size=16)
+    config = TrainConfig(stage="shape", data_dirs=(str(args.data),), out_dir="", batch_size=16)
     step = max(1, len(train_views) // args.views)
     spread = train_views[::step][: args.views]
     device = torch.device("cpu")

@@ -71,7 +71,13 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
             f"--out logs/train/general_{stage} --epochs 4\n"
             f"multi-GPU: torchrun --nproc_per_node 4 -m controller.cli.main train {stage} ...",
         )
-        parser.add_argument("--data", type=Path, required=True, help="dataset folder")
+        parser.add_argument(
+            "--data",
+            type=Path,
+            nargs="+",
+            required=True,
+            help="dataset folders, trained on together",
+        )
         parser.add_argument("--out", type=Path, required=True, help="checkpoints and metrics")
         parser.add_argument("--preset", default="cpu", choices=("cpu", "paper"))
         parser.add_argument("--epochs", type=int, default=10)
@@ -139,7 +145,9 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
         "--shape-weights logs/train/general_shape/shape.pt "
         "--out logs/train/general_shape/shape_calibrated.pt",
     )
-    calibrate.add_argument("--data", type=Path, required=True, help="dataset folder")
+    calibrate.add_argument(
+        "--data", type=Path, nargs="+", required=True, help="dataset folders (as trained on)"
+    )
     calibrate.add_argument("--sketch-weights", type=Path, required=True)
     calibrate.add_argument("--shape-weights", type=Path, required=True)
     calibrate.add_argument("--out", type=Path, required=True, help="calibrated shape weights")
@@ -255,7 +263,7 @@ def train_network(args: argparse.Namespace) -> int:
 
     config = TrainConfig(
         stage=args.stage,
-        data_dir=str(args.data),
+        data_dirs=tuple(map(str, args.data)),
         out_dir=str(args.out),
         preset=args.preset,
         epochs=args.epochs,

@@ -454,31 +454,41 @@ class SketchVoxelDataset(torch.utils.data.Dataset):
 
     def __init__(
         self,
-        data_dir: str | Path,
+        data_dirs: str | Path | Sequence[str | Path],
         *,
         shards: Sequence[str] | None = None,
         search_crops: bool = False,
     ) -> None:
-        data_dir = Path(data_dir)
-        manifest = json.loads(manifest_path(data_dir).read_text())
-        recipe = manifest["recipe"]["recipe"]
-        self.image_size: int = recipe["image_size"]
-        self.voxel_resolution: int = recipe["voxel_resolution"]
-        self.categories: list[str] = manifest["categories"]
-        if search_crops and recipe.get("frame", "fixed") != "object":
-            raise ValueError(f"{data_dir} has no search crops (its views use the fixed frame)")
+        folders = (
+            [Path(data_dirs)] if isinstance(data_dirs, str | Path) else list(map(Path, data_dirs))
+        )
+        if not folders or (shards is not None and len(folders) > 1):
+            raise ValueError("give one dataset folder (with shards) or several (without)")
+        manifests = [json.loads(manifest_path(folder).read_text()) for folder in folders]
+        recipes = [manifest["recipe"]["recipe"] for manifest in manifests]
+        sizes = {(recipe["image_size"], recipe["voxel_resolution"]) for recipe in recipes}
+        frames = {recipe.get("frame", "fixed") for recipe in recipes}
+        if len(sizes) > 1 or len(frames) > 1:
+            raise ValueError(f"{', '.join(map(str, folders))}: datasets of different recipes")
+        (self.image_size, self.voxel_resolution), frame = sizes.pop(), frames.pop()
+        self.categories: list[str] = list(
+            dict.fromkeys(c for manifest in manifests for c in manifest["categories"])
+        )
+        if search_crops and frame != "object":
+            raise ValueError(f"{folders[0]} has no search crops (its views use the fixed frame)")
         keys = self._VIEW_KEYS + (self._SEARCH_KEYS if search_crops else ())
-        files = [s["file"] for s in manifest["shards"]] if shards is None else list(shards)
         parts: dict[str, list[np.ndarray]] = {}
-        for name in files:
-            with np.load(data_dir / name) as shard:
-                count = len(shard["rgb"])
-                for key in keys:
-                    parts.setdefault(key, []).append(shard[key])
-                category = self.categories.index(str(shard["category"]))
-                parts.setdefault("category", []).append(np.full(count, category))
-                names = shard["names"][shard["shape_index"]]
-                parts.setdefault("name", []).append(names)
+        for source, (folder, manifest) in enumerate(zip(folders, manifests, strict=True)):
+            files = [s["file"] for s in manifest["shards"]] if shards is None else list(shards)
+            for name in files:
+                with np.load(folder / name) as shard:
+                    count = len(shard["rgb"])
+                    for key in keys:
+                        parts.setdefault(key, []).append(shard[key])
+                    category = self.categories.index(str(shard["category"]))
+                    parts.setdefault("category", []).append(np.full(count, category))
+                    parts.setdefault("name", []).append(shard["names"][shard["shape_index"]])
+                    parts.setdefault("source", []).append(np.full(count, source))
         self.arrays = {key: np.concatenate(value) for key, value in parts.items()}
         self.views = len(self.arrays["rgb"])
         self.search_crops = search_crops
@@ -524,10 +534,19 @@ class SketchVoxelDataset(torch.utils.data.Dataset):
 def split_by_shape(
     dataset: SketchVoxelDataset, val_fraction: float, seed: int = 0
 ) -> tuple[list[int], list[int]]:
-    """Train / validation view indices with whole shapes held out for validation."""
+    """Train / validation view indices with whole shapes held out for validation.
+
+    Each dataset folder is split on its own with the same seed, so adding a folder leaves the
+    split of the others as it was (a fine-tune on more data validates on the same shapes)."""
     names = dataset.shape_names()
-    unique = np.unique(names)
-    rng = np.random.default_rng(seed)
-    val_names = set(rng.choice(unique, max(1, round(val_fraction * len(unique))), replace=False))
-    is_val = np.array([name in val_names for name in names])
+    sources = dataset.arrays["source"]
+    sources = np.concatenate([sources, sources]) if dataset.search_crops else sources
+    is_val = np.zeros(len(names), dtype=bool)
+    for source in np.unique(sources):
+        in_source = sources == source
+        unique = np.unique(names[in_source])
+        rng = np.random.default_rng(seed)
+        count = max(1, round(val_fraction * len(unique)))
+        val_names = set(rng.choice(unique, count, replace=False))
+        is_val |= in_source & np.array([name in val_names for name in names])
     return np.flatnonzero(~is_val).tolist(), np.flatnonzero(is_val).tolist()

@@ -54,7 +54,8 @@ class TrainConfig:
     """One training run. Learning rates and momenta default to the paper's."""
 
     stage: Stage
-    data_dir: str
+    data_dirs: tuple[str, ...]
+    """Dataset folders, trained on together (each split into train / validation on its own)."""
     out_dir: str
     preset: str = "cpu"
     epochs: int = 10
@@ -265,8 +266,8 @@ def _move_optimizer_state(optimizer: torch.optim.Optimizer, device: torch.device
                 slot[key] = value.to(device)
 
 
-def _has_search_crops(data_dir: str | Path) -> bool:
-    manifest = json.loads((Path(data_dir) / "manifest.json").read_text())
+def _has_search_crops(data_dirs: tuple[str, ...]) -> bool:
+    manifest = json.loads((Path(data_dirs[0]) / "manifest.json").read_text())
     return manifest["recipe"]["recipe"].get("frame", "fixed") == "object"
 
 
@@ -282,8 +283,8 @@ def train(config: TrainConfig, *, progress: bool = True) -> dict:
     torch.manual_seed(config.seed)
     # The sketch net also learns the search crops, where the object-fitted frame looks for the
     # object (when the data has them); the shape net needs voxels, which only the fitted crops have.
-    search = config.stage == "sketch" and _has_search_crops(config.data_dir)
-    dataset = SketchVoxelDataset(config.data_dir, search_crops=search)
+    search = config.stage == "sketch" and _has_search_crops(config.data_dirs)
+    dataset = SketchVoxelDataset(config.data_dirs, search_crops=search)
     train_idx, val_idx = split_by_shape(dataset, config.val_fraction, config.seed)
     val_idx = val_idx[: config.max_val_samples]
 

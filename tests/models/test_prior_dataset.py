@@ -173,3 +173,36 @@ def test_fixed_frame_data_has_no_search_crops(tmp_path: Path) -> None:
     assert np.allclose(np.load(tmp_path / "shard_00000.npz")["grid_extent_m"], fixed.grid_extent_m)
     with pytest.raises(ValueError, match="no search crops"):
         SketchVoxelDataset(tmp_path, search_crops=True)
+
+
+def test_folders_train_together_and_a_new_one_keeps_the_old_split(tmp_path: Path) -> None:
+    build_dataset(
+        _spec(tmp_path / "a", categories=("box", "can"), shapes_per_category=4),
+        workers=1,
+        progress=False,
+    )
+    build_dataset(
+        _spec(tmp_path / "b", categories=("creature",), shapes_per_category=4),
+        workers=1,
+        progress=False,
+    )
+    alone = SketchVoxelDataset(tmp_path / "a")
+    together = SketchVoxelDataset([tmp_path / "a", tmp_path / "b"])
+    assert together.categories == ["box", "can", "creature"]
+    assert len(together) == len(alone) + len(SketchVoxelDataset(tmp_path / "b"))
+    assert int(together[len(alone)]["category"]) == 2
+    train_alone, val_alone = split_by_shape(alone, 0.25)
+    train, val = split_by_shape(together, 0.25)
+    # The first folder's views keep their split; the new folder has validation shapes of its own.
+    assert [i for i in val if i < len(alone)] == val_alone
+    assert [i for i in train if i < len(alone)] == train_alone
+    assert any(i >= len(alone) for i in val)
+    with pytest.raises(ValueError, match="different recipes"):
+        build_dataset(
+            _spec(
+                tmp_path / "c", categories=("can",), recipe=dataclasses.replace(TINY, image_size=96)
+            ),
+            workers=1,
+            progress=False,
+        )
+        SketchVoxelDataset([tmp_path / "a", tmp_path / "c"])

@@ -93,7 +93,7 @@ def test_shape_loss_decreases(tiny_data: Path) -> None:
 def test_train_writes_metrics_weights_and_resumes(tiny_data: Path, tmp_path: Path) -> None:
     sketch_config = TrainConfig(
         "sketch",
-        str(tiny_data),
+        (str(tiny_data),),
         str(tmp_path / "sketch"),
         preset="tiny",
         epochs=1,
@@ -106,7 +106,7 @@ def test_train_writes_metrics_weights_and_resumes(tiny_data: Path, tmp_path: Pat
 
     config = TrainConfig(
         "shape",
-        str(tiny_data),
+        (str(tiny_data),),
         str(tmp_path / "shape"),
         preset="tiny",
         epochs=1,
@@ -142,11 +142,11 @@ def test_a_resumed_run_trains_bit_exact(tiny_data: Path, tmp_path: Path, stage: 
     if stage == "shape":  # half the samples from a sketch net's predictions: drawn per step too
         save_weights(SketchNet(TINY_PRESET), "sketch", "tiny", tmp_path / "sketch.pt")
         common |= {"sketch_weights": str(tmp_path / "sketch.pt"), "predicted_sketch_prob": 0.5}
-    whole = TrainConfig(stage, str(tiny_data), str(tmp_path / "whole"), **common)
+    whole = TrainConfig(stage, (str(tiny_data),), str(tmp_path / "whole"), **common)
     train(whole, progress=False)
     state = tmp_path / "training_state" / f"{stage}.pt"
     first_machine = TrainConfig(
-        stage, str(tiny_data), str(tmp_path / "first"), checkpoint=str(state), **common
+        stage, (str(tiny_data),), str(tmp_path / "first"), checkpoint=str(state), **common
     )
     train(TrainConfig(**{**first_machine.__dict__, "max_minutes": 1e-9}), progress=False)
     stopped = torch.load(state, weights_only=False)
@@ -172,7 +172,7 @@ def test_a_corrupt_checkpoint_is_refused_naming_the_file(tiny_data: Path, tmp_pa
     state = tmp_path / "shape.pt"
     state.write_bytes(b"not a checkpoint")
     config = TrainConfig(
-        "shape", str(tiny_data), str(tmp_path / "run"), preset="tiny", checkpoint=str(state)
+        "shape", (str(tiny_data),), str(tmp_path / "run"), preset="tiny", checkpoint=str(state)
     )
     with pytest.raises(TrainingStateError, match=r"shape\.pt: not a usable training checkpoint"):
         train(config, progress=False)
@@ -180,7 +180,7 @@ def test_a_corrupt_checkpoint_is_refused_naming_the_file(tiny_data: Path, tmp_pa
 
 
 def test_the_learning_rate_decays_by_epoch() -> None:
-    config = TrainConfig("shape", "data", "out", lr_decay_epochs=(2, 4), lr_decay_factor=0.5)
+    config = TrainConfig("shape", ("data",), "out", lr_decay_epochs=(2, 4), lr_decay_factor=0.5)
     rates = [epoch_learning_rate(config, epoch) for epoch in range(6)]
     assert rates == pytest.approx([2e-2, 2e-2, 1e-2, 1e-2, 5e-3, 5e-3])
 
@@ -213,7 +213,7 @@ def test_training_on_predicted_sketches_needs_the_sketch_weights(
     tiny_data: Path, tmp_path: Path
 ) -> None:
     config = TrainConfig(
-        "shape", str(tiny_data), str(tmp_path / "s"), preset="tiny", predicted_sketch_prob=0.5
+        "shape", (str(tiny_data),), str(tmp_path / "s"), preset="tiny", predicted_sketch_prob=0.5
     )
     with pytest.raises(ValueError, match="sketch_weights"):
         train(config, progress=False)
@@ -230,7 +230,7 @@ def _ddp_worker(rank: int, port: int, data: str, out: str) -> None:
     networks.PRESETS["tiny"] = TINY_PRESET  # spawned processes start from a fresh import
     torch.set_num_threads(1)
     train(
-        TrainConfig("shape", data, out, preset="tiny", epochs=1, batch_size=2, val_fraction=0.3),
+        TrainConfig("shape", (data,), out, preset="tiny", epochs=1, batch_size=2, val_fraction=0.3),
         progress=False,
     )
 
