@@ -390,3 +390,22 @@ def eval_prior(args: argparse.Namespace) -> int:
     )
     print_json(result, args.json)
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The prior commands alone: `python -m controller.cli.prior train shape ...`. They need
+    torch and the geometry libraries only, so a training machine without the robot stack (no
+    Zenoh, Rerun or ur-rtde: a lent GPU, a cluster node) runs the same recipe."""
+    import logging
+
+    parser = argparse.ArgumentParser(prog="python -m controller.cli.prior")
+    add_commands(parser.add_subparsers(dest="group", required=True, metavar="COMMAND"))
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    return args.handler(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

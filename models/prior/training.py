@@ -143,8 +143,9 @@ def ground_truth_shape_input(
     if sensor_depth_prob > 0:
         sensor = batch["sensor_nearness"]
         filled = torch.where(sensor > 0, sensor, depth)
+        # Drawn on the CPU generator (bit-exact resume on any device), used where the batch is.
         use = torch.rand(depth.shape[0], 1, 1, 1, generator=generator) < sensor_depth_prob
-        depth = torch.where(use, filled, depth)
+        depth = torch.where(use.to(depth.device), filled, depth)
     return shape_input(depth, batch["normals"], batch["silhouette"])
 
 
@@ -162,7 +163,7 @@ def predicted_shape_input(
 
 def shape_loss(logits: Tensor, voxels: Tensor, positive_weight: float = 1.0) -> Tensor:
     """Binary cross-entropy over all voxels (``positive_weight`` > 1 up-weights occupied ones)."""
-    weight = None if positive_weight == 1.0 else torch.tensor(positive_weight)
+    weight = None if positive_weight == 1.0 else torch.tensor(positive_weight, device=logits.device)
     return F.binary_cross_entropy_with_logits(logits, voxels, pos_weight=weight)
 
 
