@@ -1,18 +1,25 @@
 #!/usr/bin/env bash
-# The creature fine-tune of the object-frame shape net (scripts/train_object_frame_creature.sh)
-# in one call of a lent GPU machine (15 minutes of device time in all, so one prepared run):
-# the same steps and flags, with less replay data. The data is built with every core, the
-# fine-tune runs on the GPU, the calibration follows; what the run made is copied to $OUT_DIR
-# even when a step fails. Rehearsed on the CPU with tiny sizes:
-#   PY=.venv/bin/python WORKERS=2 CREATURES=2 SHAPES=1 EPOCHS=1 OUT_DIR=/tmp/rehearsal \
+# The creature fine-tune of the object-frame shape net: the committed object_frame shape weights
+# (models/prior/weights/RECIPE.md) came from this script, run in one call of a lent GPU machine
+# (15 minutes of device time in all, so one prepared run). The data is built with every core,
+# the fine-tune runs on the GPU (or the CPU: it runs anywhere), the calibration follows; what
+# the run made is copied to $OUT_DIR even when a step fails. The committed weights started from
+# the object-frame shape weights before it (commit e580695) and were made by
+#   git show e580695:models/prior/weights/object_frame_shape_cpu.pt > logs/object_frame_shape_e580695.pt
+#   INIT=logs/object_frame_shape_e580695.pt SHAPES=45 EPOCHS=8 MINUTES=3 \
+#       scripts/device_train_creature.sh                              (16 cores + one H200)
+#   cp $OUT_DIR/shape_calibrated.pt models/prior/weights/object_frame_shape_cpu.pt
+# Rehearsed on the CPU with tiny sizes:
+#   INIT=models/prior/weights/object_frame_shape_cpu.pt PY=.venv/bin/python WORKERS=2 CREATURES=2 SHAPES=1 EPOCHS=1 OUT_DIR=/tmp/rehearsal \
 #       scripts/device_train_creature.sh
 # Data: the creature family (shape seeds 0..CREATURES-1) and, to keep what the net knew, the
 # object-frame recipe's 20 groups with shape seeds 0..SHAPES-1 (SHAPES is sized on the machine
 # from how fast it built the creatures, so the build fits DATA_S seconds). Every replay shape
-# is one the committed net was trained on or validated on: its validation IoU on that folder
+# is one the initial net was trained on or validated on: its validation IoU on that folder
 # is not a held-out figure (`touchshape eval prior` gives those).
 set -euo pipefail
 PY=${PY:-python3}
+INIT=${INIT:?the shape weights to start from (see above)}
 TS="$PY -m controller.cli.prior"
 OUT_DIR=${OUT_DIR:-logs/device_creature}
 WORKERS=${WORKERS:-16}
@@ -55,7 +62,7 @@ echo "data built in $(( $(date +%s) - start )) s"
 
 $TS train shape --preset cpu --data "logs/data/object_frame_$SHAPES" logs/data/creature \
     --out "$RUN" --checkpoint "$RUN/checkpoint.pt" \
-    --init $W/object_frame_shape_cpu.pt --sketch-weights $W/object_frame_sketch_cpu.pt \
+    --init "$INIT" --sketch-weights $W/object_frame_sketch_cpu.pt \
     --predicted-sketch-prob 0.5 --lr 2e-3 --lr-decay-epochs $(( EPOCHS - 1 )) \
     --epochs "$EPOCHS" --batch-size 16 --max-minutes "$MINUTES" --seed 0
 echo "trained at $(( $(date +%s) - start )) s"
