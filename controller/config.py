@@ -202,22 +202,22 @@ class ModelsConfig:
     weights_dir: str = ""
     """Empty = the weights shipped with the package."""
     device: str = "cpu"
-    update: Literal["fused", "prior", "direct"] = "fused"
-    """How touches change the shape (a request may choose another): "fused" bends the prior's
-    surface through every measurement (models.touch.fused; the latent refinement and pose fit
-    first where enabled below); "prior" the paper's latent-only update; "direct" the paper's
-    Direct Edit baseline."""
+    update: Literal["global", "fused", "prior", "direct"] = "fused"
+    """How touches change the shape (a request may choose another): "fused" bends vision's
+    surface through every measurement (models.touch.fused); "global" first fits the prior's
+    latent and the object's pose to the touches, takes that fit once it has predicted a touch
+    it had not seen (models.touch.global_fit), then bends its surface the same way (not the
+    default yet: on the bench's mug from RGB-D it left the shape worse, docs/touch.md);
+    "prior" the paper's latent-only update; "direct" the paper's Direct Edit baseline."""
     fusion_support_m: float = 0.035
     """The fused correction's reach from a touch (models.touch.fused.FusionSettings)."""
     fusion_prior_std_m: float = 0.004
     """How far the prior's surface may be off before any touch (the fused field's
     uncertainty far from touches)."""
-    fusion_refine_latent: bool = False
-    """Refine the prior's latent by the touch loss before fusing (as the "prior" update does).
-    Off: on the bench it helped some objects and broke others (docs/touch.md)."""
-    fusion_pose_fit: bool = False
-    """Fit the prior's translation, yaw and scale to the touches (fused update). Off: on the
-    bench it moved shapes by their local errors (docs/touch.md)."""
+    global_learning_rate: float = 0.01
+    """Adam's step size on the latent in the global update's fit (models.touch.global_fit)."""
+    global_iterations: int = 15
+    """Adam steps on the latent per round of the global update's fit."""
     fusion_policy: Literal["variance", "window"] = "variance"
     """What the active policy reads with the fused update: the fused field's P(inside) with its
     uncertainty ("variance": touched regions are known), or with the prior's uncertainty
@@ -246,6 +246,9 @@ class ModelsConfig:
         if not NAME_PATTERN.fullmatch(self.prior):
             raise FieldError("prior", "must be 1..64 letters, digits, '_' or '-'")
         require_positive(self, "refine_learning_rate")
+        require_positive(self, "global_learning_rate")
+        if self.global_iterations < 0:
+            raise FieldError("global_iterations", "must be >= 0")
         require_positive(self, "fusion_support_m")
         require_positive(self, "fusion_prior_std_m")
         if self.refine_iterations_per_touch < 0:

@@ -23,7 +23,7 @@ from controller.benchmarks.sim_touch import SimTouchBench
 from controller.benchmarks.timing import Stopwatch
 from controller.benchmarks.touch_latency import latency_figures
 from controller.config import Config
-from controller.perception.learned import LearnedPerception
+from controller.perception.learned import FUSED_UPDATES, LearnedPerception
 from controller.perception.protocol import ShapeEstimate, TouchOutcome, TouchTarget
 from controller.request import ExploreRequest
 from models.geometry import make_transform, rotation_about_axis
@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 Policy = Literal["active", "random", "oracle"]
-Update = Literal["fused", "prior", "direct"]
+Update = Literal["global", "fused", "prior", "direct"]
 METHODS: dict[str, tuple[Policy, Update]] = {
     "active-fused": ("active", "fused"),
     "random-fused": ("random", "fused"),
@@ -55,6 +55,8 @@ METHODS: dict[str, tuple[Policy, Update]] = {
     "random-prior": ("random", "prior"),
     "active-direct": ("active", "direct"),
     "oracle-prior": ("oracle", "prior"),
+    "active-global": ("active", "global"),
+    "random-global": ("random", "global"),
 }
 """Method name -> (touch policy, shape update). A method's seeds depend on its position here."""
 MAX_OBJECT_HEIGHT_M, MAX_OBJECT_WIDTH_M = 0.25, 0.20
@@ -298,7 +300,7 @@ def _explore(run: ObjectRun, method: str, run_index: int, tick: Callable[[], Non
     request = run.request(policy, update)
     # RGB-D: the fused update starts from vision with the camera's depth fused in (as a
     # session's reconstruct gives it), so its curve measures what the touches add.
-    fused = update == "fused"
+    fused = update in FUSED_UPDATES
     estimate = run.vision_fused if fused else run.vision
     start = run.vision_fused_metrics if fused else run.vision_metrics
     outcomes: list[TouchOutcome] = []

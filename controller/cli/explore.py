@@ -26,7 +26,7 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
     explore.add_argument("--policy", choices=["active", "random"], default="active")
     explore.add_argument(
         "--update",
-        choices=["fused", "prior", "direct"],
+        choices=["global", "fused", "prior", "direct"],
         default=None,
         help="how touches change the shape (default: the config's, fused)",
     )

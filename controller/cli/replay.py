@@ -22,7 +22,7 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
     replay.add_argument("session", type=Path, help="the recorded session's folder")
     replay.add_argument(
         "--update",
-        choices=["fused", "prior", "direct"],
+        choices=["global", "fused", "prior", "direct"],
         default=None,
         help="how touches change the shape (default: the recorded session's)",
     )

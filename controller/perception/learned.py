@@ -60,8 +60,8 @@ from models.touch.fused import (
     FusionSettings,
     Pose,
     SignedDistanceGrid,
-    posed_grid,
 )
+from models.touch.global_fit import GlobalSettings, GlobalState, ShapeMean, global_step
 from models.touch.observations import SurfaceObservations, observations_of
 from models.touch.policy import (
     above_table_filter,
@@ -72,7 +72,7 @@ from models.touch.policy import (
     random_touch,
     touch_candidates,
 )
-from models.touch.refinement import RefinementResult, direct_edit, refine_latent
+from models.touch.refinement import Decode, RefinementResult, direct_edit, refine_latent
 from models.vision import VisionSettings, estimate_from_frame
 
 log = logging.getLogger(__name__)
@@ -89,6 +89,8 @@ TABLE_CONTACT_M = 0.002
 """Contact points this close to the table top are the table's (on the bench a random touch can
 press the gel onto the table beside a flat object)."""
 RANDOM_POLICY_TRIES = 50
+FUSED_UPDATES = ("global", "fused")
+"""The updates that bend the prior's surface through every measurement (docs/touch.md)."""
 REPEAT_RADIUS_M = 0.005
 """A target this close to an earlier one, approached from the same direction, is not chosen
 again: the earlier touch already answered what it could."""
@@ -185,9 +187,9 @@ class LearnedPerception:
             )
         if vision.symmetry is not None:
             log.info("symmetry completion: %s", vision.symmetry.summary())
-        # The fused update starts from the depth fused into the prior; the paper's updates
-        # (latent, Direct Edit) from the prior's voxels.
-        fused = request.update == "fused" and vision.fused is not None
+        # The fused updates (global, fused) start from the depth fused into the prior; the
+        # paper's updates (latent, Direct Edit) from the prior's voxels.
+        fused = request.update in FUSED_UPDATES and vision.fused is not None
         return ShapeEstimate(
             grid=prediction.grid,
             probabilities=vision.probabilities if fused else prediction.probabilities,
@@ -303,7 +305,7 @@ class LearnedPerception:
     def refine(
         self, estimate: ShapeEstimate, outcomes: list[TouchOutcome], request: ExploreRequest
     ) -> ShapeEstimate:
-        if request.update == "fused" and estimate.vision_probabilities is not None:
+        if request.update in FUSED_UPDATES and estimate.vision_probabilities is not None:
             touches = [o.touch for o in outcomes if o.touch is not None]
             return self.refine_fused(estimate, touches, request)
         return self.refine_with(estimate, self.constraints(outcomes, estimate.grid), request)
@@ -311,33 +313,49 @@ class LearnedPerception:
     def refine_fused(
         self, estimate: ShapeEstimate, touches: list[TouchResult], request: ExploreRequest
     ) -> ShapeEstimate:
-        """The fused update from all touches so far (however measured): the prior's shape
-        (its latent refined by the touch loss on its posed grid when
-        ``fusion_refine_latent``), its pose fitted (``fusion_pose_fit``), its surface bent
-        through every measurement (``models.touch.fused``)."""
-        models = self.config.models
+        """The fused update from all touches so far (however measured). With ``update =
+        "global"`` the prior's latent and pose are first fitted to every observation, and that
+        fit becomes the mean once it has predicted a touch it had not seen
+        (``models.touch.global_fit``); then the mean's surface is bent through every
+        measurement (``models.touch.fused``)."""
         base_grid = estimate.grid
-        pose = estimate.fused.pose if estimate.fused is not None else Pose()
-        latent = estimate.latent
-        if models.fusion_refine_latent and estimate.latent is not None:
-            constraints = constraints_from_touches(touches, posed_grid(base_grid, pose))
-            result = self._refine_latent(estimate, constraints, request)
-            latent = result.latent
-            prior = SignedDistanceGrid.from_probabilities(result.voxels.numpy(), base_grid)
-        elif estimate.fused is not None:
-            # The prior's shape is vision's, as at the last touch: its distance is computed.
-            prior = estimate.fused.prior.moved_to(base_grid)
-        else:
-            prior = SignedDistanceGrid.from_probabilities(estimate.vision_probabilities, base_grid)
         observations = SurfaceObservations.merged(
             [estimate.camera_observations, observations_of(touches)]
         )
+        if estimate.fused is not None:
+            # Vision's shape as at the last touch: its distance is computed already.
+            vision_distance = estimate.fused.prior.moved_to(base_grid)
+        else:
+            vision_distance = SignedDistanceGrid.from_probabilities(
+                estimate.vision_probabilities, base_grid
+            )
+        state = estimate.global_state
+        latent, pose, prior = estimate.latent, Pose(), vision_distance
+        if request.update == "global" and estimate.vision_latent is not None and touches:
+            vision_latent = torch.as_tensor(estimate.vision_latent)
+            if state is None:
+                vision = ShapeMean(
+                    vision_latent, estimate.vision_probabilities, vision_distance, Pose()
+                )
+                state = GlobalState.start(vision)
+            state = global_step(
+                state,
+                self._decoder(estimate, request),
+                vision_latent,
+                touches,
+                observations,
+                self.global_settings,
+            )
+            if state.decisions and state.decisions[-1].touch == len(touches) - 1:
+                log.info(state.decisions[-1].summary())
+            latent, pose, prior = state.mean.latent, state.mean.pose, state.mean.distance
         fused = FusedShape.from_distance(prior, observations, self.fusion_settings, pose)
         return replace(
             estimate,
             probabilities=self._fused_probabilities(fused, base_grid),
             latent=latent,
             fused=fused,
+            global_state=state,
         )
 
     def _fused_probabilities(self, fused: FusedShape, grid: VoxelGrid) -> np.ndarray:
@@ -356,9 +374,14 @@ class LearnedPerception:
     def fusion_settings(self) -> FusionSettings:
         models = self.config.models
         return FusionSettings(
-            support_m=models.fusion_support_m,
-            prior_std_m=models.fusion_prior_std_m,
-            pose_fit=models.fusion_pose_fit,
+            support_m=models.fusion_support_m, prior_std_m=models.fusion_prior_std_m
+        )
+
+    @property
+    def global_settings(self) -> GlobalSettings:
+        models = self.config.models
+        return GlobalSettings(
+            learning_rate=models.global_learning_rate, iterations=models.global_iterations
         )
 
     def refine_with(
@@ -379,26 +402,30 @@ class LearnedPerception:
 
     # --- helpers --------------------------------------------------------------------------------
 
+    def _decoder(self, estimate: ShapeEstimate, request: ExploreRequest) -> Decode:
+        """The estimate's prior's decoder; space the camera saw empty stays empty in every
+        shape the latent decodes to."""
+        decode = self.prior(estimate.prior or request.prior).decode
+        if estimate.seen_empty is None:
+            return decode
+        seen_empty = torch.as_tensor(estimate.seen_empty)
+
+        def decode_carved(latent: torch.Tensor) -> torch.Tensor:
+            probabilities = decode(latent)
+            return torch.where(
+                seen_empty, probabilities.clamp(max=SEEN_EMPTY_PROBABILITY), probabilities
+            )
+
+        return decode_carved
+
     def _refine_latent(
         self, estimate: ShapeEstimate, constraints: VoxelConstraints, request: ExploreRequest
     ) -> RefinementResult:
         """The estimate's latent refined by the touch loss (``[models]`` settings), anchored to
         the vision latent."""
         models = self.config.models
-        decode = self.prior(estimate.prior or request.prior).decode
-        if estimate.seen_empty is not None:
-            # Space the camera saw empty stays empty in every shape the latent decodes to.
-            seen_empty = torch.as_tensor(estimate.seen_empty)
-            prior_decode = decode
-
-            def decode(latent: torch.Tensor) -> torch.Tensor:
-                probabilities = prior_decode(latent)
-                return torch.where(
-                    seen_empty, probabilities.clamp(max=SEEN_EMPTY_PROBABILITY), probabilities
-                )
-
         return refine_latent(
-            decode,
+            self._decoder(estimate, request),
             torch.as_tensor(estimate.latent),
             constraints,
             learning_rate=models.refine_learning_rate,

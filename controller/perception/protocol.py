@@ -49,6 +49,9 @@ class ShapeEstimate:
     """Voxels of ``grid`` the camera saw empty (``models.prior.carving``): no update fills them."""
     input: str = "rgb"
     """What vision used: "rgb" or "rgbd" (an ``auto`` request resolved by the frame)."""
+    global_state: Any | None = None
+    """The global update's mean, candidate and guard verdicts
+    (``models.touch.global_fit.GlobalState``) when that update made this estimate."""
     _surface: trimesh.Trimesh | None = field(default=None, init=False, repr=False, compare=False)
     _surface_lock: threading.Lock = field(
         default_factory=threading.Lock, init=False, repr=False, compare=False

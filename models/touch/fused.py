@@ -139,6 +139,12 @@ class Pose:
     def as_array(self) -> FloatArray:
         return np.array([self.x_m, self.y_m, self.yaw_rad, self.log_scale])
 
+    def summary(self) -> str:
+        return (
+            f"x {1000 * self.x_m:+.1f} mm, y {1000 * self.y_m:+.1f} mm, "
+            f"yaw {math.degrees(self.yaw_rad):+.1f} deg, scale {math.exp(self.log_scale):.3f}"
+        )
+
 
 def posed_grid(grid: VoxelGrid, pose: Pose) -> VoxelGrid:
     """``grid`` moved by ``pose``: scaled about and yawed around its object point (the bottom

@@ -28,7 +28,7 @@ def test_valid_requests_over_the_defaults() -> None:
     request = parse(json.dumps({"max_touches": 3, "prior": "box", "policy": "random"}))
     assert (request.max_touches, request.prior, request.policy) == (3, "box", "random")
     assert request.update == "fused"  # the default
-    for update in ("fused", "prior", "direct"):
+    for update in ("global", "fused", "prior", "direct"):
         assert parse(json.dumps({"update": update})).update == update
 
 
@@ -49,7 +49,7 @@ def test_valid_requests_over_the_defaults() -> None:
         ({"max_touches": 2.5}, "'max_touches' must be an integer in 1..100, got 2.5"),
         ({"max_touches": True}, "'max_touches' must be an integer in 1..100, got True"),
         ({"policy": "greedy"}, "'policy' must be one of 'active', 'random'"),
-        ({"update": "gp"}, "'update' must be one of 'fused', 'prior', 'direct'"),
+        ({"update": "gp"}, "'update' must be one of 'global', 'fused', 'prior', 'direct'"),
         ({"touches": 3}, "unknown key 'touches'"),
     ],
 )

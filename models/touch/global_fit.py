@@ -1,0 +1,242 @@
+"""The global step of a touch: the prior's latent and the object's pose fitted to every
+observation so far, taken only once the fit has predicted a touch it had not seen.
+
+Why: the fused correction (``models.touch.fused``) follows the contacts exactly but reaches only
+35 mm from them; where vision is wrong everywhere (a real object the prior never saw), only the
+prior's latent and pose move the whole shape (docs/explore.md, run 6c: latent -29 % vs fused
+-17 % per object). A latent fitted to a few patches can also go wrong, so a step is guarded:
+
+* after touch k the fit to touches 1..k (:func:`fit_mean`, from the previous fit) is made, and
+  kept as the *candidate*;
+* the candidate of touch k-1 never saw touch k. The new fit becomes the mean only when that
+  predecessor predicted touch k (:func:`prediction_error_m`) better than vision's shape did, by
+  ``margin_m``, and no worse than the mean in use, and when the new fit keeps the camera's
+  depth points (RGB-D) as close as vision's shape did, within ``camera_tolerance_m``.
+  Otherwise the mean stays (nothing gets worse), and the candidate goes on to predict the next
+  touch.
+
+The first touch has no held-out prediction (the candidate before it is vision itself), so the
+global step starts at the second. The fused correction is then applied on whichever mean holds.
+Frames: the latent decodes on the estimate's grid (``base_grid``); the pose moves that grid
+(``posed_grid``); observations and distances are world metres.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+
+from models.geometry import VoxelGrid
+from models.touch.constraints import TouchResult, VoxelConstraints, constraints_from_touches
+from models.touch.fused import Pose, SignedDistanceGrid, fit_pose, posed_grid
+from models.touch.observations import SurfaceObservations, observations_of
+from models.touch.refinement import Decode, refine_latent
+
+CAMERA_SOURCE = -1
+"""``SurfaceObservations.surface_source`` of the camera's depth points."""
+
+
+@dataclass(frozen=True)
+class GlobalSettings:
+    """How the latent and pose are fitted, and how much better a held-out touch must be
+    predicted for a step to be taken."""
+
+    rounds: int = 2
+    """Alternations of pose fit and latent refinement per touch."""
+    learning_rate: float = 0.01
+    iterations: int = 15
+    """Adam steps on the latent per round."""
+    anchor_weight: float = 0.03
+    """Pull of the latent towards vision's (as the "prior" update)."""
+    margin_m: float = 0.0002
+    """A step needs its predecessor to predict the held-out touch this much better than vision
+    (metres of mean error): below it the two are a tie, and a tie keeps the mean."""
+    camera_constraints: bool = True
+    """Whether the camera's depth points constrain the latent (they always fit the pose)."""
+    camera_tolerance_m: float = 0.0005
+    """How much farther (mean) from the camera's depth points a step may put the surface."""
+
+
+@dataclass(frozen=True)
+class ShapeMean:
+    """A shape of the prior: its latent, its decoded occupancy and signed distance on the
+    unposed ``base_grid``, and the pose that moves that grid onto the object."""
+
+    latent: torch.Tensor
+    probabilities: NDArray[np.float32]
+    distance: SignedDistanceGrid
+    pose: Pose = field(default_factory=Pose)
+
+    @classmethod
+    def of(cls, latent: torch.Tensor, probabilities: NDArray, grid: VoxelGrid) -> ShapeMean:
+        volume = np.asarray(probabilities, dtype=np.float32)
+        return cls(latent, volume, SignedDistanceGrid.from_probabilities(volume, grid))
+
+    def posed_distance(self) -> SignedDistanceGrid:
+        """The signed distance (metres) of the posed shape, in the world."""
+        return self.distance.moved_to(posed_grid(self.distance.grid, self.pose))
+
+
+@dataclass(frozen=True)
+class GuardDecision:
+    """One touch's verdict: the held-out touch's prediction error (metres) of vision's shape,
+    of the mean in use and of the fit that had not seen it, how the new fit moved the surface
+    from the camera's points, and whether the step was taken."""
+
+    def summary(self) -> str:
+        verdict = "taken" if self.taken else "refused"
+        return (
+            f"global step after touch {self.touch + 1} {verdict}: held-out touch predicted to "
+            f"{1000 * self.candidate_error_m:.2f} mm (vision {1000 * self.vision_error_m:.2f}, "
+            f"mean {1000 * self.mean_error_m:.2f}); camera points "
+            f"{1000 * self.camera_error_change_m:+.2f} mm; fit's pose {self.pose.summary()}"
+        )
+
+    touch: int
+    vision_error_m: float
+    mean_error_m: float
+    candidate_error_m: float
+    camera_error_change_m: float
+    """The new fit's mean distance to the camera's depth points minus vision's (0: no depth)."""
+    pose: Pose
+    """The new fit's pose."""
+    taken: bool
+
+
+@dataclass(frozen=True)
+class GlobalState:
+    """What the global step carries from touch to touch."""
+
+    vision: ShapeMean
+    """Vision's shape: the baseline a step must beat."""
+    mean: ShapeMean
+    """The mean the fused correction is applied on."""
+    candidate: ShapeMean
+    """The fit to every touch so far: it predicts the next touch."""
+    decisions: tuple[GuardDecision, ...] = field(default_factory=tuple)
+
+    @classmethod
+    def start(cls, vision: ShapeMean) -> GlobalState:
+        return cls(vision, vision, vision)
+
+    @property
+    def steps_taken(self) -> int:
+        return sum(d.taken for d in self.decisions)
+
+    @property
+    def steps_refused(self) -> int:
+        return sum(not d.taken for d in self.decisions)
+
+
+def camera_constraints(camera: SurfaceObservations, grid: VoxelGrid) -> VoxelConstraints:
+    """The camera's depth points as occupied voxels: the voxel holding the point sqrt(3)/2 voxel
+    behind it (against its outward normal), whose centre lies inside the object (as for a
+    contact: docs/touch.md). Space in front of them is carved already (``seen_empty``)."""
+    points = camera.surface_points_world[camera.surface_source == CAMERA_SOURCE]
+    normals = camera.surface_normals_world[camera.surface_source == CAMERA_SOURCE]
+    if len(points) == 0:
+        return VoxelConstraints.none(grid.resolution)
+    behind = points - normals * (math.sqrt(3) / 2 * grid.voxel_size_m)
+    ijk = np.floor(grid.world_to_voxel(behind)).astype(np.int64)
+    inside = np.all((ijk >= 0) & (ijk < grid.resolution), axis=1)
+    return VoxelConstraints.from_voxels(grid.resolution, np.zeros((0, 3)), ijk[inside])
+
+
+def fit_mean(
+    decode: Decode,
+    start: ShapeMean,
+    anchor_latent: torch.Tensor | None,
+    touches: list[TouchResult],
+    observations: SurfaceObservations,
+    settings: GlobalSettings = GlobalSettings(),
+) -> ShapeMean:
+    """The latent and pose fitted to ``touches`` (their voxel constraints, in the posed grid)
+    and to ``observations`` (the touches' and the camera's points: the pose fit), alternating
+    from ``start``."""
+    grid = start.distance.grid
+    mean = start
+    # The pose answers to the touches alone: the camera's points cover the visible side, where
+    # the fused correction follows them anyway, and fitted to them the pose took the prior's
+    # shape errors there for pose (the mug's seen front made it 8 % larger, its back too far).
+    touch_observations = observations_of(touches)
+    for _ in range(settings.rounds):
+        pose = fit_pose(mean.distance, grid, touch_observations, mean.pose)
+        posed = posed_grid(grid, pose)
+        constraints = constraints_from_touches(touches, posed)
+        if settings.camera_constraints:
+            constraints = constraints.merged(camera_constraints(observations, posed))
+        result = refine_latent(
+            decode,
+            mean.latent,
+            constraints,
+            learning_rate=settings.learning_rate,
+            iterations=settings.iterations,
+            loss="threshold",
+            anchor_latent=anchor_latent,
+            anchor_weight=settings.anchor_weight if anchor_latent is not None else 0.0,
+        )
+        fitted = ShapeMean.of(result.latent, result.voxels.numpy(), grid)
+        mean = ShapeMean(fitted.latent, fitted.probabilities, fitted.distance, pose)
+    return mean
+
+
+def prediction_error_m(distance: SignedDistanceGrid, touch: SurfaceObservations) -> float:
+    """How far a shape (its posed signed distance, metres) is from what one touch measured:
+    the mean |distance| at its contact points plus the mean depth inside the shape of the
+    points its rays swept free. A touch with no contact is judged by its free points alone."""
+    error = 0.0
+    if len(touch.surface_points_world):
+        error += float(np.mean(np.abs(distance(touch.surface_points_world))))
+    if len(touch.free_points_world):
+        error += float(np.mean(np.maximum(-distance(touch.free_points_world), 0.0)))
+    return error
+
+
+def camera_error_m(distance: SignedDistanceGrid, observations: SurfaceObservations) -> float:
+    """The mean |distance| (metres) of a shape at the camera's depth points (0 without)."""
+    camera = observations.surface_points_world[observations.surface_source == CAMERA_SOURCE]
+    return float(np.mean(np.abs(distance(camera)))) if len(camera) else 0.0
+
+
+def global_step(
+    state: GlobalState,
+    decode: Decode,
+    anchor_latent: torch.Tensor | None,
+    touches: list[TouchResult],
+    observations: SurfaceObservations,
+    settings: GlobalSettings = GlobalSettings(),
+) -> GlobalState:
+    """After the newest of ``touches``: fit the candidate to all of them, and take it as the
+    mean if the previous candidate (which had not seen the newest touch) predicted that touch
+    better than the mean in use. ``observations`` hold every touch's and the camera's points."""
+    newest = SurfaceObservations.from_touch(touches[-1], len(touches) - 1)
+    candidate = fit_mean(decode, state.candidate, anchor_latent, touches, observations, settings)
+    if len(touches) < 2:
+        # The candidate before the first touch is vision itself: nothing was held out.
+        return GlobalState(state.vision, state.mean, candidate, state.decisions)
+    vision_error = prediction_error_m(state.vision.posed_distance(), newest)
+    mean_error = prediction_error_m(state.mean.posed_distance(), newest)
+    candidate_error = prediction_error_m(state.candidate.posed_distance(), newest)
+    camera_change = camera_error_m(candidate.posed_distance(), observations) - camera_error_m(
+        state.vision.posed_distance(), observations
+    )
+    taken = (
+        candidate_error < vision_error - settings.margin_m
+        and candidate_error <= mean_error
+        and camera_change <= settings.camera_tolerance_m
+    )
+    decision = GuardDecision(
+        len(touches) - 1,
+        vision_error,
+        mean_error,
+        candidate_error,
+        camera_change,
+        candidate.pose,
+        taken,
+    )
+    mean = candidate if taken else state.mean
+    return GlobalState(state.vision, mean, candidate, (*state.decisions, decision))

@@ -1,0 +1,128 @@
+"""The global step of a touch: the prior's latent and pose fitted to the touches recover a moved
+or scaled shape of the prior's family, and the guard refuses a step a held-out touch refutes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from scipy.spatial import cKDTree
+from skimage.measure import marching_cubes
+
+from controller.benchmarks.explore_bounds import ideal_touch
+from models.geometry import VoxelGrid
+from models.prior.shape_prior import ShapePrior
+from models.procedural import make_shape
+from models.touch.constraints import TouchResult
+from models.touch.fused import Pose, posed_grid
+from models.touch.global_fit import (
+    GlobalSettings,
+    GlobalState,
+    ShapeMean,
+    global_step,
+    prediction_error_m,
+)
+from models.touch.observations import SurfaceObservations, observations_of
+from tests.models.test_vision import FULL, GRID, POSE, _frame
+
+PAD_SIZE_M = (0.019, 0.014)
+
+
+def _surface(probabilities: np.ndarray, grid: VoxelGrid) -> trimesh.Trimesh:
+    """The 0.5 surface of a probability volume in the world, normals outward."""
+    vertices, faces, _, _ = marching_cubes(np.pad(probabilities, 1), 0.5)
+    mesh = trimesh.Trimesh(grid.voxel_to_world(vertices - 0.5), faces)
+    mesh.fix_normals()
+    return mesh
+
+
+def _chamfer_mm(a: trimesh.Trimesh, b: trimesh.Trimesh) -> float:
+    pa = trimesh.sample.sample_surface(a, 20_000, seed=0)[0]
+    pb = trimesh.sample.sample_surface(b, 20_000, seed=1)[0]
+    return 500.0 * (cKDTree(pb).query(pa)[0].mean() + cKDTree(pa).query(pb)[0].mean())
+
+
+def _ideal_touches(mesh: trimesh.Trimesh, count: int, seed: int) -> list[TouchResult]:
+    points, faces = trimesh.sample.sample_surface(mesh, 4000, seed=seed)
+    normals = mesh.face_normals[faces]
+    keep = (points[:, 2] > 0.01) & (normals[:, 2] > -0.3)
+    points, normals = points[keep], normals[keep]
+    chosen = np.random.default_rng(seed).permutation(len(points))[:count]
+    return [ideal_touch(mesh, points[i], normals[i], PAD_SIZE_M) for i in chosen]
+
+
+@pytest.fixture(scope="module")
+def bottle_vision():
+    """The general prior's estimate of a bottle on the bench: its latent and shape."""
+    torch.set_num_threads(1)
+    prior = ShapePrior.load("general")
+    frame, _ = _frame(make_shape("bottle", np.random.default_rng(0)))
+    prediction = prior.predict(frame.colour_rgb, FULL, POSE, GRID)
+    latent = torch.as_tensor(prediction.latent)
+    return prior, latent, ShapeMean.of(latent, prediction.probabilities, GRID)
+
+
+def _run(prior, latent, vision, touches, settings=GlobalSettings()) -> GlobalState:
+    state = GlobalState.start(vision)
+    for k in range(1, len(touches) + 1):
+        observations = observations_of(touches[:k])
+        state = global_step(state, prior.decode, latent, touches[:k], observations, settings)
+    return state
+
+
+@pytest.mark.parametrize(
+    "true_pose",
+    [Pose(x_m=0.010), Pose(y_m=-0.010), Pose(log_scale=float(np.log(1.2)))],
+    ids=["shifted 10 mm", "shifted 10 mm sideways", "scaled 20 %"],
+)
+def test_a_moved_or_scaled_shape_is_recovered_from_5_ideal_touches(bottle_vision, true_pose):
+    prior, latent, vision = bottle_vision
+    truth = _surface(vision.probabilities, posed_grid(GRID, true_pose))
+    start = _surface(vision.probabilities, GRID)
+    state = _run(prior, latent, vision, _ideal_touches(truth, 5, seed=3))
+    mean = _surface(state.mean.probabilities, posed_grid(GRID, state.mean.pose))
+    assert _chamfer_mm(start, truth) > 5.0  # the start is far off
+    assert _chamfer_mm(mean, truth) < 2.0
+    assert state.steps_taken >= 1
+
+
+def test_the_first_touch_takes_no_step(bottle_vision):
+    """Nothing was held out from the first fit: the mean stays vision's."""
+    prior, latent, vision = bottle_vision
+    truth = _surface(vision.probabilities, posed_grid(GRID, Pose(x_m=0.010)))
+    state = _run(prior, latent, vision, _ideal_touches(truth, 1, seed=3))
+    assert state.mean is vision and state.decisions == ()
+    assert state.candidate is not vision
+
+
+def _shifted_touches(vision: ShapeMean, shift_m: float, count: int) -> list[TouchResult]:
+    truth = _surface(vision.probabilities, posed_grid(GRID, Pose(x_m=shift_m)))
+    return _ideal_touches(truth, count, seed=3)
+
+
+def test_the_guard_refuses_a_step_a_held_out_touch_contradicts(bottle_vision):
+    """Touches 1-3 say the object stands 10 mm along +x; the fourth, held out from the fit that
+    learned that, finds it 10 mm along -x: the fit to all four is not taken."""
+    prior, latent, vision = bottle_vision
+    touches = _shifted_touches(vision, 0.010, 3)
+    contradiction = _shifted_touches(vision, -0.010, 4)[3]
+    state = _run(prior, latent, vision, [*touches, contradiction])
+    taken_before = state.decisions[-2].taken
+    last = state.decisions[-1]
+    assert taken_before  # the consistent touches moved the mean
+    assert not last.taken
+    assert last.candidate_error_m > last.vision_error_m  # vision predicted it better
+    # The mean is still the fit of touches 1-3, which the contradiction did not move.
+    assert state.mean.pose.x_m == pytest.approx(0.010, abs=0.003)
+
+
+def test_prediction_error_is_zero_on_the_shape_and_grows_off_it(bottle_vision):
+    _, _, vision = bottle_vision
+    truth = _surface(vision.probabilities, GRID)
+    touch = SurfaceObservations.from_touch(_ideal_touches(truth, 1, seed=5)[0])
+    on = prediction_error_m(vision.posed_distance(), touch)
+    moved = ShapeMean(vision.latent, vision.probabilities, vision.distance, Pose(x_m=0.01))
+    off = prediction_error_m(moved.posed_distance(), touch)
+    assert on < 0.0015
+    assert off > on + 0.002
