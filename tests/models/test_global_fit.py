@@ -17,7 +17,6 @@ from models.procedural import make_shape
 from models.touch.constraints import TouchResult
 from models.touch.fused import Pose, posed_grid
 from models.touch.global_fit import (
-    GlobalSettings,
     GlobalState,
     ShapeMean,
     global_step,
@@ -63,11 +62,11 @@ def bottle_vision():
     return prior, latent, ShapeMean.of(latent, prediction.probabilities, GRID)
 
 
-def _run(prior, latent, vision, touches, settings=GlobalSettings()) -> GlobalState:
+def _run(prior, latent, vision, touches) -> GlobalState:
     state = GlobalState.start(vision)
     for k in range(1, len(touches) + 1):
         observations = observations_of(touches[:k])
-        state = global_step(state, prior.decode, latent, touches[:k], observations, settings)
+        state = global_step(state, prior.decode, latent, touches[:k], observations)
     return state
 
 
