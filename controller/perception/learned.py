@@ -345,6 +345,7 @@ class LearnedPerception:
                 touches,
                 observations,
                 self.global_settings,
+                estimate.seen_empty,
             )
             if state.decisions and state.decisions[-1].touch == len(touches) - 1:
                 log.info(state.decisions[-1].summary())

@@ -11,7 +11,9 @@ prior's latent and pose move the whole shape (docs/explore.md, run 6c: latent -2
 * the candidate of touch k-1 never saw touch k. The new fit becomes the mean only when that
   predecessor predicted touch k (:func:`prediction_error_m`) better than vision's shape did, by
   ``margin_m``, and no worse than the mean in use, and when the new fit keeps the camera's
-  depth points (RGB-D) as close as vision's shape did, within ``camera_tolerance_m``.
+  depth points (RGB-D) as close as vision's shape did, within ``camera_tolerance_m``, and puts
+  no more of its volume where the camera saw empty space (``seen_empty_tolerance``): a pose
+  moves the decoder's own carving with the shape.
   Otherwise the mean stays (nothing gets worse), and the candidate goes on to predict the next
   touch.
 
@@ -59,6 +61,8 @@ class GlobalSettings:
     """Whether the camera's depth points constrain the latent (they always fit the pose)."""
     camera_tolerance_m: float = 0.0005
     """How much farther (mean) from the camera's depth points a step may put the surface."""
+    seen_empty_tolerance: float = 0.02
+    """How much more of its volume a step may put where the camera saw empty space (fraction)."""
 
 
 @dataclass(frozen=True)
@@ -93,7 +97,8 @@ class GuardDecision:
             f"global step after touch {self.touch + 1} {verdict}: held-out touch predicted to "
             f"{1000 * self.candidate_error_m:.2f} mm (vision {1000 * self.vision_error_m:.2f}, "
             f"mean {1000 * self.mean_error_m:.2f}); camera points "
-            f"{1000 * self.camera_error_change_m:+.2f} mm; fit's pose {self.pose.summary()}"
+            f"{1000 * self.camera_error_change_m:+.2f} mm; volume seen empty "
+            f"{100 * self.seen_empty_change:+.1f} %; fit's pose {self.pose.summary()}"
         )
 
     touch: int
@@ -102,6 +107,8 @@ class GuardDecision:
     candidate_error_m: float
     camera_error_change_m: float
     """The new fit's mean distance to the camera's depth points minus vision's (0: no depth)."""
+    seen_empty_change: float
+    """The new fit's fraction of volume in space seen empty minus vision's."""
     pose: Pose
     """The new fit's pose."""
     taken: bool
@@ -196,6 +203,25 @@ def prediction_error_m(distance: SignedDistanceGrid, touch: SurfaceObservations)
     return error
 
 
+def seen_empty_fraction(mean: ShapeMean, seen_empty: NDArray[np.bool_] | None) -> float:
+    """The fraction of a posed shape's occupied voxels whose centres lie where the camera saw
+    empty space (``seen_empty`` on the unposed grid, which is vision's and fixed in the world).
+    The decoder caps seen-empty voxels in its own grid, which a pose moves: this is the check
+    in the world."""
+    if seen_empty is None:
+        return 0.0
+    occupied = np.argwhere(mean.probabilities >= 0.5)
+    if len(occupied) == 0:
+        return 0.0
+    grid = mean.distance.grid
+    world = posed_grid(grid, mean.pose).voxel_to_world(occupied + 0.5)
+    ijk = np.floor(grid.world_to_voxel(world)).astype(np.int64)
+    inside = np.all((ijk >= 0) & (ijk < grid.resolution), axis=1)
+    outside_grid = int(np.sum(~inside))
+    hits = int(np.sum(seen_empty[tuple(ijk[inside].T)]))
+    return (hits + outside_grid) / len(occupied)
+
+
 def camera_error_m(distance: SignedDistanceGrid, observations: SurfaceObservations) -> float:
     """The mean |distance| (metres) of a shape at the camera's depth points (0 without)."""
     camera = observations.surface_points_world[observations.surface_source == CAMERA_SOURCE]
@@ -209,10 +235,12 @@ def global_step(
     touches: list[TouchResult],
     observations: SurfaceObservations,
     settings: GlobalSettings = GlobalSettings(),
+    seen_empty: NDArray[np.bool_] | None = None,
 ) -> GlobalState:
     """After the newest of ``touches``: fit the candidate to all of them, and take it as the
     mean if the previous candidate (which had not seen the newest touch) predicted that touch
-    better than the mean in use. ``observations`` hold every touch's and the camera's points."""
+    better than the mean in use. ``observations`` hold every touch's and the camera's points;
+    ``seen_empty`` the voxels of the unposed grid the camera saw empty."""
     newest = SurfaceObservations.from_touch(touches[-1], len(touches) - 1)
     candidate = fit_mean(decode, state.candidate, anchor_latent, touches, observations, settings)
     if len(touches) < 2:
@@ -224,10 +252,14 @@ def global_step(
     camera_change = camera_error_m(candidate.posed_distance(), observations) - camera_error_m(
         state.vision.posed_distance(), observations
     )
+    empty_change = seen_empty_fraction(candidate, seen_empty) - seen_empty_fraction(
+        state.vision, seen_empty
+    )
     taken = (
         candidate_error < vision_error - settings.margin_m
         and candidate_error <= mean_error
         and camera_change <= settings.camera_tolerance_m
+        and empty_change <= settings.seen_empty_tolerance
     )
     decision = GuardDecision(
         len(touches) - 1,
@@ -235,6 +267,7 @@ def global_step(
         mean_error,
         candidate_error,
         camera_change,
+        empty_change,
         candidate.pose,
         taken,
     )

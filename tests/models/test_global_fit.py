@@ -21,6 +21,7 @@ from models.touch.global_fit import (
     ShapeMean,
     global_step,
     prediction_error_m,
+    seen_empty_fraction,
 )
 from models.touch.observations import SurfaceObservations, observations_of
 from tests.models.test_vision import FULL, GRID, POSE, _frame
@@ -125,3 +126,14 @@ def test_prediction_error_is_zero_on_the_shape_and_grows_off_it(bottle_vision):
     off = prediction_error_m(moved.posed_distance(), touch)
     assert on < 0.0015
     assert off > on + 0.002
+
+
+def test_a_pose_that_moves_the_shape_into_space_seen_empty_is_seen(bottle_vision):
+    """The decoder's carving moves with a pose; the world-frame check does not: a shape grown
+    by 30 % puts volume where the camera saw empty space, vision's shape none."""
+    _, _, vision = bottle_vision
+    seen_empty = vision.probabilities < 0.5  # all the camera could have seen empty
+    grown = ShapeMean(vision.latent, vision.probabilities, vision.distance, Pose(log_scale=0.26))
+    assert seen_empty_fraction(vision, seen_empty) == 0.0
+    assert seen_empty_fraction(grown, seen_empty) > 0.2
+    assert seen_empty_fraction(grown, None) == 0.0
