@@ -237,6 +237,9 @@ class ModelsConfig:
     (models.touch.refinement.refine_latent); 0 = the paper's loss alone."""
     refine_write_measurements: bool = True
     """Write the touches' measured voxels into the refined shape (empty 0, occupied 1)."""
+    aim_along_normal: bool = True
+    """Approach each target along the fused shape's inward normal there (the active policy's
+    directions are a lattice up to 45 degrees off it); off: along the policy's direction."""
     policy_stop_uncertainty: float = 0.0
     """The session stops before its touch budget when the active policy's most uncertain
     reachable window is less uncertain than this (0..1, see ``TouchTarget.uncertainty``);

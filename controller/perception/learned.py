@@ -67,6 +67,7 @@ from models.touch.policy import (
     above_table_filter,
     all_of,
     facing_surface_filter,
+    normal_approach,
     not_repeated_filter,
     predicted_bounding_box_world,
     random_touch,
@@ -243,8 +244,10 @@ class LearnedPerception:
                     candidate.score,
                     candidate.uncertainty,
                 )
-                if allowed(target):
-                    return target
+                aimed = self._aimed_along_normal(estimate, target, feasible)
+                for choice in (aimed, target):
+                    if choice is not None and allowed(choice):
+                        return choice
             return None
         box = predicted_bounding_box_world(estimate.probabilities, grid)
         if box is None:
@@ -402,6 +405,19 @@ class LearnedPerception:
         return replace(estimate, probabilities=probabilities, latent=result.latent)
 
     # --- helpers --------------------------------------------------------------------------------
+
+    def _aimed_along_normal(
+        self, estimate: ShapeEstimate, target: TouchTarget, feasible: TargetFilter
+    ) -> TouchTarget | None:
+        """``target`` approached along the fused shape's inward normal there
+        (:func:`models.touch.policy.normal_approach`), if feasible; None without a fused shape,
+        with ``aim_along_normal`` off, or where the normal gives no approach."""
+        if estimate.fused is None or not self.config.models.aim_along_normal:
+            return None
+        direction = normal_approach(estimate.fused.sdf, target.target_world, target.direction_world)
+        if direction is None or not bool(feasible(target.target_world[None], direction)[0]):
+            return None
+        return replace(target, direction_world=direction)
 
     def _decoder(self, estimate: ShapeEstimate, request: ExploreRequest) -> Decode:
         """The estimate's prior's decoder; space the camera saw empty stays empty in every

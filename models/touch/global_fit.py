@@ -49,6 +49,8 @@ class GlobalSettings:
 
     rounds: int = 2
     """Alternations of pose fit and latent refinement per touch."""
+    pose_fit: bool = True
+    """Fit the pose (translation on the table, yaw, scale); off: the latent alone."""
     learning_rate: float = 0.01
     iterations: int = 15
     """Adam steps on the latent per round."""
@@ -171,7 +173,11 @@ def fit_mean(
     # shape errors there for pose (the mug's seen front made it 8 % larger, its back too far).
     touch_observations = observations_of(touches)
     for _ in range(settings.rounds):
-        pose = fit_pose(mean.distance, grid, touch_observations, mean.pose)
+        pose = (
+            fit_pose(mean.distance, grid, touch_observations, mean.pose)
+            if settings.pose_fit
+            else mean.pose
+        )
         posed = posed_grid(grid, pose)
         constraints = constraints_from_touches(touches, posed)
         if settings.camera_constraints:

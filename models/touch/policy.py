@@ -289,6 +289,38 @@ def facing_surface_filter(voxels: ArrayLike, grid: VoxelGrid, max_angle_deg: flo
     return feasible
 
 
+NORMAL_STEP_M = 0.002
+"""Central-difference step of a signed distance's gradient (the surface normal at a target)."""
+MAX_AIM_TURN_DEG = 50.0
+"""An aimed approach stays this close to the policy's (beyond it the estimate's normal there is
+taken for noise)."""
+
+
+def normal_approach(
+    sdf: Callable[[FloatArray], FloatArray],
+    target_world: ArrayLike,
+    direction_world: ArrayLike,
+    max_turn_deg: float = MAX_AIM_TURN_DEG,
+) -> FloatArray | None:
+    """The inward surface normal at a target (world, unit) of a signed distance (metres, > 0
+    outside, (K, 3) points -> (K,)), to approach along so the gel lands flat and the window,
+    not the finger's rim, meets the surface; the policy's window directions are a lattice up to
+    45 degrees off it. None where the gradient vanishes or turns more than ``max_turn_deg``
+    from ``direction_world``."""
+    point = np.asarray(target_world, dtype=float)
+    steps = NORMAL_STEP_M * np.eye(3)
+    gradient = np.asarray(sdf(point + steps)) - np.asarray(sdf(point - steps))
+    length = float(np.linalg.norm(gradient))
+    if length < 1e-9:
+        return None
+    inward = -gradient / length
+    if float(inward @ np.asarray(direction_world, dtype=float)) < math.cos(
+        math.radians(max_turn_deg)
+    ):
+        return None
+    return inward
+
+
 def not_repeated_filter(
     touches_world: Sequence[tuple[ArrayLike, ArrayLike]],
     radius_m: float,

@@ -16,6 +16,7 @@ from models.touch.policy import (
     confidence,
     facing_surface_filter,
     integral_image,
+    normal_approach,
     oracle_select,
     policy_directions,
     predicted_bounding_box_world,
@@ -255,3 +256,30 @@ def test_oracle_picks_the_candidate_with_the_lowest_error() -> None:
 def test_volume_must_match_the_grid() -> None:
     with pytest.raises(ValueError):
         select_touch(np.zeros((8, 8, 8)), GRID)
+
+
+def _sphere_sdf(centre, radius):
+    centre = np.asarray(centre, dtype=float)
+    return lambda points: np.linalg.norm(np.asarray(points) - centre, axis=-1) - radius
+
+
+def test_normal_approach_turns_a_lattice_direction_onto_the_surface_normal() -> None:
+    """A target on a sphere approached 40 degrees off its normal is re-aimed along the inward
+    normal: the gel lands flat."""
+    sdf = _sphere_sdf((0.0, 0.0, 0.1), 0.05)
+    target = np.array([0.05 * np.cos(0.3), 0.05 * np.sin(0.3), 0.1])
+    inward = -np.array([np.cos(0.3), np.sin(0.3), 0.0])
+    off = np.array([np.cos(np.radians(40)), 0.0, 0.0])
+    policy_direction = inward * off[0] + np.array([0.0, 0.0, -np.sin(np.radians(40))])
+    aimed = normal_approach(sdf, target, policy_direction)
+    assert aimed is not None
+    assert np.linalg.norm(aimed) == pytest.approx(1.0)
+    assert np.degrees(np.arccos(np.clip(aimed @ inward, -1, 1))) < 1.0
+
+
+def test_normal_approach_refuses_a_turn_past_its_limit_and_a_flat_field() -> None:
+    sdf = _sphere_sdf((0.0, 0.0, 0.1), 0.05)
+    target = np.array([0.05, 0.0, 0.1])
+    sideways = np.array([0.0, 1.0, 0.0])  # 90 degrees off the inward normal
+    assert normal_approach(sdf, target, sideways) is None
+    assert normal_approach(lambda p: np.zeros(len(p)), target, -np.array([1.0, 0, 0])) is None
