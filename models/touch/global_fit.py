@@ -26,7 +26,7 @@ Frames: the latent decodes on the estimate's grid (``base_grid``); the pose move
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -169,24 +169,24 @@ def fit_mean(
     and to ``observations`` (the touches' and the camera's points: the pose fit), alternating
     from ``start``."""
     grid = start.distance.grid
-    mean = start
     # The pose answers to the touches alone: the camera's points cover the visible side, where
     # the fused correction follows them anyway, and fitted to them the pose took the prior's
     # shape errors there for pose (the mug's seen front made it 8 % larger, its back too far).
     touch_observations = observations_of(touches)
-    for _ in range(settings.rounds):
-        pose = (
-            fit_pose(mean.distance, grid, touch_observations, mean.pose)
-            if settings.pose_fit
-            else mean.pose
-        )
+    latent, pose, distance = start.latent, start.pose, start.distance
+    probabilities = start.probabilities
+    for round_index in range(settings.rounds):
+        if settings.pose_fit:
+            if round_index > 0:
+                distance = SignedDistanceGrid.from_probabilities(probabilities, grid)
+            pose = fit_pose(distance, grid, touch_observations, pose)
         posed = posed_grid(grid, pose)
         constraints = constraints_from_touches(touches, posed)
         if settings.camera_constraints:
             constraints = constraints.merged(camera_constraints(observations, posed))
         result = refine_latent(
             decode,
-            mean.latent,
+            latent,
             constraints,
             learning_rate=settings.learning_rate,
             iterations=settings.iterations,
@@ -194,9 +194,8 @@ def fit_mean(
             anchor_latent=anchor_latent,
             anchor_weight=settings.anchor_weight if anchor_latent is not None else 0.0,
         )
-        fitted = ShapeMean.of(result.latent, result.voxels.numpy(), grid)
-        mean = ShapeMean(fitted.latent, fitted.probabilities, fitted.distance, pose)
-    return mean
+        latent, probabilities = result.latent, result.voxels.numpy()
+    return replace(ShapeMean.of(latent, probabilities, grid), pose=pose)
 
 
 def prediction_error_m(distance: SignedDistanceGrid, touch: SurfaceObservations) -> float:
