@@ -202,13 +202,12 @@ class ModelsConfig:
     weights_dir: str = ""
     """Empty = the weights shipped with the package."""
     device: str = "cpu"
-    update: Literal["global", "fused", "prior", "direct"] = "fused"
-    """How touches change the shape (a request may choose another): "fused" bends vision's
-    surface through every measurement (models.touch.fused); "global" first fits the prior's
-    latent and the object's pose to the touches, takes that fit once it has predicted a touch
-    it had not seen (models.touch.global_fit), then bends its surface the same way (not the
-    default yet: on the bench's mug from RGB-D it left the shape worse, docs/touch.md);
-    "prior" the paper's latent-only update; "direct" the paper's Direct Edit baseline."""
+    update: Literal["global", "fused", "prior", "direct"] = "global"
+    """How touches change the shape (a request may choose another): "global" fits the prior's
+    latent to every touch, takes that fit as the mean once it has predicted a touch it had not
+    seen (models.touch.global_fit), then bends the mean's surface through every measurement;
+    "fused" bends vision's surface only (models.touch.fused); "prior" the paper's latent-only
+    update; "direct" the paper's Direct Edit baseline (docs/touch.md)."""
     fusion_support_m: float = 0.035
     """The fused correction's reach from a touch (models.touch.fused.FusionSettings)."""
     fusion_prior_std_m: float = 0.004

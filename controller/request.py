@@ -27,7 +27,7 @@ class ExploreRequest:
 
     max_touches: Annotated[int, MAX_TOUCHES] = 10
     policy: Literal["active", "random"] = "active"
-    update: Literal["global", "fused", "prior", "direct"] = "fused"
+    update: Literal["global", "fused", "prior", "direct"] = "global"
     input: Literal["auto", "rgb", "rgbd"] = "auto"
     """auto: RGB-D when the camera gives depth (the Kinect v2 and the bench do), RGB otherwise."""
     prior: str = "auto"

@@ -47,7 +47,7 @@ class GlobalSettings:
     """How the latent and pose are fitted, and how much better a held-out touch must be
     predicted for a step to be taken."""
 
-    rounds: int = 2
+    rounds: int = 1
     """Alternations of pose fit and latent refinement per touch."""
     pose_fit: bool = False
     """Fit the pose (translation on the table, yaw, scale) too. Off: on 10 real meshes from RGB

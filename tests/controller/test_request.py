@@ -27,7 +27,7 @@ def test_valid_requests_over_the_defaults() -> None:
     assert parse(b"  \n") == ExploreRequest()
     request = parse(json.dumps({"max_touches": 3, "prior": "box", "policy": "random"}))
     assert (request.max_touches, request.prior, request.policy) == (3, "box", "random")
-    assert request.update == "fused"  # the default
+    assert request.update == "global"  # the default
     for update in ("global", "fused", "prior", "direct"):
         assert parse(json.dumps({"update": update})).update == update
 
