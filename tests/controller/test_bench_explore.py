@@ -415,3 +415,24 @@ def test_where_the_gel_pressed_the_table_it_measured_no_object(
     monkeypatch.setattr(learned, "contact_geometry", lambda *args, **kwargs: contact)
     outcome = perception_for(config, calibration).interpret(measurement)
     assert np.allclose(outcome.contact_points_world[:, 2], [0.003, 0.010])
+
+
+@pytest.mark.parametrize("update", ["global", "fused"])
+def test_a_contact_without_an_imprint_never_moves_the_surface_inward(
+    box_bench, config, calibration, update
+) -> None:
+    """A flat face filling the pad stops the fingers by force but leaves no imprint: only the
+    sweep up to the stop is known free. The refined surface may retreat to the stop, never
+    past it: points beyond the stop that the estimate held inside stay inside."""
+    target = TouchTarget(np.array([BOX_HALF_M, 0.0, 0.04]), np.array([-1.0, 0.0, 0.0]))
+    measurement = box_bench.touch(target, noise_seed=(0,))
+    perception = perception_for(config, calibration)
+    outcome = perception.interpret(measurement)
+    assert measurement.contact and len(outcome.contact_points_world) == 0  # force only
+    request = ExploreRequest(update=update, prior="general", input="rgbd")
+    vision = perception.reconstruct(box_bench.frame(), request)
+    refined = perception.refine(vision, [outcome], request)
+    stop = measurement.pose_world_pad[:3, 3]
+    beyond = stop + np.outer(np.linspace(0.001, 0.008, 8), target.direction_world)
+    before, after = vision.fused.sdf(beyond), refined.fused.sdf(beyond)
+    assert np.all(after <= np.maximum(before, 0.0) + 5e-4)
