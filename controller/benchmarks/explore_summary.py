@@ -98,6 +98,8 @@ def summarise(objects: Sequence[dict], methods: Sequence[str], touches: int) -> 
     bar: dict[str, Any] = {}
     if "active-fused" in curves:
         bar.update(_fused_bar(objects, summary["methods"], curves, touches))
+    if "active-global" in curves:
+        bar.update(_global_bar(objects, summary["methods"], curves, touches))
     if "active-prior" in curves:
         change = summary["methods"]["active-prior"]["chamfer_change_pct"]
         bar["active_prior_chamfer_change_pct"] = change
@@ -170,6 +172,39 @@ def _fused_bar(
             )
             and (change_pct(random[touches], active[touches]) or 0.0) <= -5.0
         )
+    return bar
+
+
+def _global_bar(
+    objects: Sequence[dict], methods: dict[str, Any], curves: dict[str, list], touches: int
+) -> dict[str, Any]:
+    """Issue 27's bar for the global update (the default): active-global lowers the Chamfer
+    distance by >= 25 % per object on average with no object > 1 % worse, beats random-global
+    by >= 5 % at N touches (where it ran), >= 90 % of its contacts leave an imprint, and the
+    touch fidelity's median is <= 0.3 mm after N touches."""
+    entry = methods["active-global"]
+    runs = [o["methods"]["active-global"] for o in objects]
+    changes = [change_pct(r["chamfer_mm"][0], r["chamfer_mm"][-1]) for r in runs]
+    worst = max((c for c in changes if c is not None), default=None)
+    fidelity = [r["touch_fidelity_mm"][-1] for r in runs if r["touch_fidelity_mm"][-1] is not None]
+    counts = entry["touches"]
+    contacts = counts["imprint"] + counts["force_only"]
+    imprint_share = counts["imprint"] / contacts if contacts else None
+    change = entry["chamfer_change_pct"]
+    bar: dict[str, Any] = {
+        "active_global_chamfer_change_pct": change,
+        "active_global_worst_object_change_pct": worst,
+        "active_global_imprint_share": imprint_share,
+        "active_global_touch_fidelity_median_mm": float(np.median(fidelity)) if fidelity else None,
+        "active_global_lowers_chamfer_25pct": change is not None and change <= -25.0,
+        "active_global_no_object_worse_than_1pct": worst is not None and worst <= 1.0,
+        "active_global_imprints_90pct": imprint_share is not None and imprint_share >= 0.9,
+        "active_global_fidelity_within_0_3mm": bool(fidelity) and float(np.median(fidelity)) <= 0.3,
+    }
+    if "random-global" in curves:
+        versus = change_pct(curves["random-global"][touches], curves["active-global"][touches])
+        bar["active_global_vs_random_global_pct"] = versus
+        bar["active_global_beats_random_global_5pct"] = versus is not None and versus <= -5.0
     return bar
 
 

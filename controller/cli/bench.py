@@ -23,7 +23,7 @@ METHODS = (
     "active-fused,random-fused,oracle-fused,active-prior,random-prior,active-direct,oracle-prior"
 )
 """All methods (``controller.benchmarks.explore.METHODS`` defines them)."""
-DEFAULT_METHODS = "active-fused,random-fused,active-prior,oracle-fused"
+DEFAULT_METHODS = "active-global,random-global,active-fused,active-prior"
 EPILOG = """examples:
   touchshape bench explore --touches 10 --methods active-fused,random-fused,active-prior,\
 oracle-fused --random-runs 10 --workers 2 --json logs/bench_explore.json --plot docs/explore.png

@@ -436,3 +436,30 @@ def test_a_contact_without_an_imprint_never_moves_the_surface_inward(
     beyond = stop + np.outer(np.linspace(0.001, 0.008, 8), target.direction_world)
     before, after = vision.fused.sdf(beyond), refined.fused.sdf(beyond)
     assert np.all(after <= np.maximum(before, 0.0) + 5e-4)
+
+
+def test_the_global_bar_is_issue_27s() -> None:
+    """Per-object drop, the worst object, active against random at N, the imprint share."""
+    objects = [
+        {
+            "methods": {
+                "active-global": method_result([10.0, 8.0, 7.0, 6.0]),  # -40 %
+                "random-global": method_result([10.0, 9.0, 8.0, 7.0]),
+            }
+        },
+        {
+            "methods": {
+                "active-global": method_result([4.0, 4.0, 4.1, 4.02]),  # +0.5 %
+                "random-global": method_result([4.0, 4.1, 4.1, 4.1]),
+            }
+        },
+    ]
+    bar = summarise(objects, ["active-global", "random-global"], 3)["bar"]
+    assert bar["active_global_chamfer_change_pct"] == pytest.approx((-40.0 + 0.5) / 2)
+    assert bar["active_global_lowers_chamfer_25pct"] is False  # -19.75 %
+    assert bar["active_global_no_object_worse_than_1pct"] is True
+    assert bar["active_global_vs_random_global_pct"] == pytest.approx(100 * (5.01 / 5.55 - 1))
+    assert bar["active_global_beats_random_global_5pct"] is True
+    assert bar["active_global_imprint_share"] == pytest.approx(0.5)  # 1 imprint, 1 force only
+    assert bar["active_global_imprints_90pct"] is False
+    assert bar["active_global_fidelity_within_0_3mm"] is True
