@@ -317,8 +317,9 @@ class LearnedPerception:
         self, estimate: ShapeEstimate, touches: list[TouchResult], request: ExploreRequest
     ) -> ShapeEstimate:
         """The fused update from all touches so far (however measured). With ``update =
-        "global"`` the prior's latent and pose are first fitted to every observation, and that
-        fit becomes the mean once it has predicted a touch it had not seen
+        "global"`` the prior's latent (and pose, where ``GlobalSettings.pose_fit``) is first
+        fitted to every touch, and that fit becomes the mean once it has predicted a touch it
+        had not seen
         (``models.touch.global_fit``); then the mean's surface is bent through every
         measurement (``models.touch.fused``)."""
         base_grid = estimate.grid

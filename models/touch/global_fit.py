@@ -1,10 +1,11 @@
-"""The global step of a touch: the prior's latent and the object's pose fitted to every
-observation so far, taken only once the fit has predicted a touch it had not seen.
+"""The global step of a touch: the prior's latent (and, where asked, the object's pose) fitted
+to every touch so far, taken only once the fit has predicted a touch it had not seen.
 
 Why: the fused correction (``models.touch.fused``) follows the contacts exactly but reaches only
 35 mm from them; where vision is wrong everywhere (a real object the prior never saw), only the
-prior's latent and pose move the whole shape (docs/explore.md, run 6c: latent -29 % vs fused
--17 % per object). A latent fitted to a few patches can also go wrong, so a step is guarded:
+prior's latent moves the whole shape (docs/explore.md: run 6c, latent -29 % vs fused -17 % per
+object; run 8, this step -25.1 % vs -15.8 % on 10 real meshes from RGB). The pose fit is off by
+default: it took the prior's shape errors for pose (``GlobalSettings.pose_fit``). A latent fitted to a few patches can also go wrong, so a step is guarded:
 
 * after touch k the fit to touches 1..k (:func:`fit_mean`, from the previous fit) is made, and
   kept as the *candidate*;
