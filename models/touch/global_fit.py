@@ -5,7 +5,8 @@ Why: the fused correction (``models.touch.fused``) follows the contacts exactly 
 35 mm from them; where vision is wrong everywhere (a real object the prior never saw), only the
 prior's latent moves the whole shape (docs/explore.md: run 6c, latent -29 % vs fused -17 % per
 object; run 8, this step -25.1 % vs -15.8 % on 10 real meshes from RGB). The pose fit is off by
-default: it took the prior's shape errors for pose (``GlobalSettings.pose_fit``). A latent fitted to a few patches can also go wrong, so a step is guarded:
+default: it took the prior's shape errors for pose (``GlobalSettings.pose_fit``). A latent
+fitted to a few patches can also go wrong, so a step is guarded:
 
 * after touch k the fit to touches 1..k (:func:`fit_mean`, from the previous fit) is made, and
   kept as the *candidate*;
