@@ -178,7 +178,7 @@ def _fused_bar(
 def _global_bar(
     objects: Sequence[dict], methods: dict[str, Any], curves: dict[str, list], touches: int
 ) -> dict[str, Any]:
-    """Issue 27's bar for the global update (the default): active-global lowers the Chamfer
+    """The global update's bar (the default update): active-global lowers the Chamfer
     distance by >= 25 % per object on average with no object > 1 % worse, beats random-global
     by >= 5 % at N touches (where it ran), >= 90 % of its contacts leave an imprint, and the
     touch fidelity's median is <= 0.3 mm after N touches."""
