@@ -64,7 +64,7 @@ class GlobalSettings:
     """A step needs its predecessor to predict the held-out touch this much better than vision
     (metres of mean error): below it the two are a tie, and a tie keeps the mean."""
     camera_constraints: bool = True
-    """Whether the camera's depth points constrain the latent (they always fit the pose)."""
+    """Whether the camera's depth points constrain the latent (as occupied voxels behind them)."""
     camera_tolerance_m: float = 0.0005
     """How much farther (mean) from the camera's depth points a step may put the surface."""
     seen_empty_tolerance: float = 0.02
@@ -97,16 +97,6 @@ class GuardDecision:
     of the mean in use and of the fit that had not seen it, how the new fit moved the surface
     from the camera's points, and whether the step was taken."""
 
-    def summary(self) -> str:
-        verdict = "taken" if self.taken else "refused"
-        return (
-            f"global step after touch {self.touch + 1} {verdict}: held-out touch predicted to "
-            f"{1000 * self.candidate_error_m:.2f} mm (vision {1000 * self.vision_error_m:.2f}, "
-            f"mean {1000 * self.mean_error_m:.2f}); camera points "
-            f"{1000 * self.camera_error_change_m:+.2f} mm; volume seen empty "
-            f"{100 * self.seen_empty_change:+.1f} %; fit's pose {self.pose.summary()}"
-        )
-
     touch: int
     vision_error_m: float
     mean_error_m: float
@@ -118,6 +108,16 @@ class GuardDecision:
     pose: Pose
     """The new fit's pose."""
     taken: bool
+
+    def summary(self) -> str:
+        verdict = "taken" if self.taken else "refused"
+        return (
+            f"global step after touch {self.touch + 1} {verdict}: held-out touch predicted to "
+            f"{1000 * self.candidate_error_m:.2f} mm (vision {1000 * self.vision_error_m:.2f}, "
+            f"mean {1000 * self.mean_error_m:.2f}); camera points "
+            f"{1000 * self.camera_error_change_m:+.2f} mm; volume seen empty "
+            f"{100 * self.seen_empty_change:+.1f} %; fit's pose {self.pose.summary()}"
+        )
 
 
 @dataclass(frozen=True)
