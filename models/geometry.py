@@ -208,6 +208,13 @@ class VoxelGrid:
         """World points (metres) -> continuous voxel coordinates (..., 3)."""
         return transform_points(np.linalg.inv(self.matrix_world_voxel), points_world)
 
+    def voxel_index(self, points_world: ArrayLike) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+        """The (i, j, k) voxel holding each world point (M, 3), and whether it lies in the grid
+        (indices of points outside are out of range)."""
+        points = np.asarray(points_world, dtype=float).reshape(-1, 3)
+        ijk = np.floor(self.world_to_voxel(points)).astype(np.int64)
+        return ijk, np.all((ijk >= 0) & (ijk < self.resolution), axis=1)
+
     def voxel_centres_world(self) -> FloatArray:
         """World coordinates of all voxel centres, shape (N, N, N, 3), indexed [i, j, k]."""
         index = np.arange(self.resolution) + 0.5

@@ -202,10 +202,8 @@ class ObjectBound:
         """Whether each point lies in a possible voxel, or with ``hidden`` in a hidden one
         (points outside the cube: False)."""
         voxels = self.possible if not hidden or self.hidden is None else self.hidden
-        points = np.asarray(points_world, dtype=float).reshape(-1, 3)
-        ijk = np.floor(self.grid.world_to_voxel(points)).astype(np.int64)
-        inside = np.all((ijk >= 0) & (ijk < self.grid.resolution), axis=1)
-        result = np.zeros(len(points), dtype=bool)
+        ijk, inside = self.grid.voxel_index(points_world)
+        result = np.zeros(len(ijk), dtype=bool)
         result[inside] = voxels[tuple(ijk[inside].T)]
         return result
 
@@ -244,9 +242,8 @@ class ObjectBound:
         return float((levels[-1] + 1) * self.grid.voxel_size_m) if len(levels) else 0.0
 
     def _voxels_of(self, points_world: ArrayLike) -> NDArray[np.int64]:
-        points = np.asarray(points_world, dtype=float).reshape(-1, 3)
-        ijk = np.floor(self.grid.world_to_voxel(points)).astype(np.int64)
-        return ijk[np.all((ijk >= 0) & (ijk < self.grid.resolution), axis=1)]
+        ijk, inside = self.grid.voxel_index(points_world)
+        return ijk[inside]
 
 
 def _filled(filter_: Callable[..., FloatArray], image: FloatArray, none: float) -> FloatArray:

@@ -154,8 +154,7 @@ def camera_constraints(camera: SurfaceObservations, grid: VoxelGrid) -> VoxelCon
     if len(points) == 0:
         return VoxelConstraints.none(grid.resolution)
     behind = points - normals * (math.sqrt(3) / 2 * grid.voxel_size_m)
-    ijk = np.floor(grid.world_to_voxel(behind)).astype(np.int64)
-    inside = np.all((ijk >= 0) & (ijk < grid.resolution), axis=1)
+    ijk, inside = grid.voxel_index(behind)
     return VoxelConstraints.from_voxels(grid.resolution, np.zeros((0, 3)), ijk[inside])
 
 
@@ -171,17 +170,17 @@ def fit_mean(
     and to ``observations`` (the touches' and the camera's points: the pose fit), alternating
     from ``start``."""
     grid = start.distance.grid
-    # The pose answers to the touches alone: the camera's points cover the visible side, where
-    # the fused correction follows them anyway, and fitted to them the pose took the prior's
-    # shape errors there for pose (the mug's seen front made it 8 % larger, its back too far).
-    touch_observations = observations_of(touches)
     latent, pose, distance = start.latent, start.pose, start.distance
     probabilities = start.probabilities
     for round_index in range(settings.rounds):
         if settings.pose_fit:
             if round_index > 0:
                 distance = SignedDistanceGrid.from_probabilities(probabilities, grid)
-            pose = fit_pose(distance, grid, touch_observations, pose)
+            # The pose answers to the touches alone: the camera's points cover the visible
+            # side, where the fused correction follows them anyway, and fitted to them the pose
+            # took the prior's shape errors there for pose (the mug's seen front made it 8 %
+            # larger, its back too far).
+            pose = fit_pose(distance, grid, observations_of(touches), pose)
         posed = posed_grid(grid, pose)
         constraints = constraints_from_touches(touches, posed)
         if settings.camera_constraints:
@@ -223,9 +222,7 @@ def seen_empty_fraction(mean: ShapeMean, seen_empty: NDArray[np.bool_] | None) -
     if len(occupied) == 0:
         return 0.0
     grid = mean.distance.grid
-    world = posed_grid(grid, mean.pose).voxel_to_world(occupied + 0.5)
-    ijk = np.floor(grid.world_to_voxel(world)).astype(np.int64)
-    inside = np.all((ijk >= 0) & (ijk < grid.resolution), axis=1)
+    ijk, inside = grid.voxel_index(posed_grid(grid, mean.pose).voxel_to_world(occupied + 0.5))
     outside_grid = int(np.sum(~inside))
     hits = int(np.sum(seen_empty[tuple(ijk[inside].T)]))
     return (hits + outside_grid) / len(occupied)
