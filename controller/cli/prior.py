@@ -79,7 +79,7 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
             help="dataset folders, trained on together",
         )
         parser.add_argument("--out", type=Path, required=True, help="checkpoints and metrics")
-        parser.add_argument("--preset", default="cpu", choices=("cpu", "paper"))
+        parser.add_argument("--preset", default="cpu", choices=("cpu", "cpu_wide", "paper"))
         parser.add_argument("--epochs", type=int, default=10)
         parser.add_argument("--batch-size", type=int, default=16)
         parser.add_argument("--lr", type=float, default=None, help="default: the paper's")
@@ -151,7 +151,7 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
     calibrate.add_argument("--sketch-weights", type=Path, required=True)
     calibrate.add_argument("--shape-weights", type=Path, required=True)
     calibrate.add_argument("--out", type=Path, required=True, help="calibrated shape weights")
-    calibrate.add_argument("--preset", default="cpu", choices=("cpu", "paper"))
+    calibrate.add_argument("--preset", default="cpu", choices=("cpu", "cpu_wide", "paper"))
     calibrate.add_argument("--samples", type=int, default=256, help="views to fit / to report")
     calibrate.add_argument("--seed", type=int, default=0, help="train/val split seed")
     calibrate.add_argument("--threads", type=int, default=None, help="torch CPU threads")

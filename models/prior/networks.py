@@ -10,6 +10,9 @@ and resolution come from a :class:`NetworkPreset`:
   (512@4^3 ... 32@64^3), one ConvTranspose3d and a sigmoid -> 128^3 voxels.
 * ``cpu``: the same topology at 128x128 input and 64^3 voxels with narrower layers (one 3D set
   fewer, since 64^3 needs one upsampling fewer), sized to train on two CPU cores.
+* ``cpu_wide``: ``cpu`` with a voxel decoder twice as wide (256@4^3 ... 32@32^3; the sketch net is
+  the same, so ``cpu`` sketch weights load into it): the capacity experiment on the shape net's
+  ~0.64 validation-IoU plateau (docs/prior.md).
 
 Sketch conventions (all images are crops from :mod:`models.prior.virtual_camera`,
 H = W = image_size): depth is "nearness" ``1 + (z_ref - z) / extent_m`` inside the silhouette and
@@ -74,6 +77,14 @@ PRESETS: dict[str, NetworkPreset] = {
         encoder_width=32,
         sketch_widths=(96, 64, 48, 24, 12),
         shape_widths=(128, 64, 32, 16),
+    ),
+    "cpu_wide": NetworkPreset(
+        name="cpu_wide",
+        image_size=128,
+        voxel_resolution=64,
+        encoder_width=32,
+        sketch_widths=(96, 64, 48, 24, 12),
+        shape_widths=(256, 128, 64, 32),
     ),
 }
 

@@ -18,7 +18,7 @@ from models.prior.networks import (
 )
 
 
-@pytest.mark.parametrize("name", ["cpu", "paper"])
+@pytest.mark.parametrize("name", ["cpu", "cpu_wide", "paper"])
 def test_sketch_and_shape_net_shapes(name: str) -> None:
     torch.manual_seed(0)
     preset = get_preset(name)
