@@ -155,6 +155,9 @@ class MotionConfig:
     """Detours keep every tool part this far above the highest point of the shape estimate."""
     path_check_step_m: float = 0.01
     """Spacing of the poses checked along every straight-line motion."""
+    refine_while_moving: bool = True
+    """Refine the shape while the arm moves to the next target, chosen from the estimate before
+    that refinement (every touch written in); false refines first, the arm waiting."""
 
     def __post_init__(self) -> None:
         require_positive(

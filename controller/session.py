@@ -4,6 +4,12 @@ idle -> capture -> reconstruct -> select -> approach -> touch -> refine -> selec
 plus fault and aborted from any working state (see ``TRANSITIONS``). Each state is an async
 step with a timeout. Perception runs in worker threads so the event loop (Zenoh replies, force
 monitoring) never waits on it. Every transition is published and recorded.
+
+The refinement overlaps the robot's motion (``motion.refine_while_moving``, the default): refine
+starts it in a worker thread; the next target is chosen from the estimate before it (with every
+touch so far written in, so what the touches measured is known to the policy) and the arm moves
+to that target's approach start; the refined estimate is taken there, before the guarded
+approach, which is checked again against it.
 """
 
 from __future__ import annotations
@@ -158,6 +164,9 @@ class ExplorationSession:
         """``measured`` and the shape estimate: what motions keep clear of."""
         self.stop_reason: str | None = None
         self._refused_in_a_row = 0
+        self._refining: asyncio.Task[ShapeEstimate] | None = None
+        """The refinement running in a worker thread while the arm moves (taken by
+        ``_take_refined``)."""
         self.skipped: list[dict[str, Any]] = []
         """Targets not touched because no safe motion reaches them, with the reason."""
         self.unexpected_forces: list[dict[str, Any]] = []
@@ -210,10 +219,13 @@ class ExplorationSession:
                 break
             self._transition(next_state)
         if self.state == State.DONE:
+            await self._take_refined()
             self.times.mark(touch=False)
             # The arm rests at the last approach start, clear of the object: going up above it
             # is a courtesy, and a refused retreat there is no error.
             await self._make_safe(report_failure=False)
+        else:  # the robot is safe: the last touch's refinement is still the session's result
+            await self._take_refined(after_stop=True)
         if self._scores is not None:
             self.metrics = await self._scores.collect()
         return self.summary()
@@ -295,6 +307,8 @@ class ExplorationSession:
             return self._stop("the touch budget is spent")
         if self._refused_in_a_row >= MAX_REFUSED_IN_A_ROW:
             return self._stop(f"no safe, reachable target is left ({MAX_REFUSED_IN_A_ROW} refused)")
+        if self._refining is not None and self._refining.done():
+            await self._take_refined()
         obstacles = self.obstacles()
         joints = (await self._device(self.devices.arm.state())).joints_rad
 
@@ -389,6 +403,22 @@ class ExplorationSession:
             came_from.append(waypoint.pose_world_tcp)
         # The approach start is left after the touch: the way here is known to be clear.
         self._came_from = came_from[:-1] if waypoints else self._came_from
+        if self._refining is not None:
+            await self._take_refined()
+            try:  # the refined estimate adds to the bound the approach keeps clear of
+                joints = (await self._device(self.devices.arm.state())).joints_rad
+                await self._compute(
+                    self.planner.check_touch,
+                    target.target_world,
+                    target.direction_world,
+                    joints,
+                    self.obstacles(),
+                )
+            except SafetyViolation as violation:
+                log.warning("target %s refused after refining: %s", target.target_world, violation)
+                self._rejected.append(target.target_world)
+                self._skip(target, str(violation), "approach")
+                return State.SELECT
         try:
             touched = await self.motion.move_until_contact(touch_plan.approach)
         except UnexpectedForceError as error:
@@ -493,16 +523,36 @@ class ExplorationSession:
 
     async def _refine(self) -> State:
         assert self.estimate is not None
+        refine = partial(self.perception.refine, self.estimate, list(self.outcomes), self.request)
+        self._refining = asyncio.ensure_future(self._compute(refine))
+        if not self.config.motion.refine_while_moving:
+            await self._take_refined()
+        return self._select_or_done()
+
+    async def _take_refined(self, *, after_stop: bool = False) -> None:
+        """Make the refinement running in the background the estimate (and add it to the
+        bound, record and score it). ``after_stop``: the session has ended in a fault or an
+        abort, the robot is safe; a failed refinement is logged, not raised."""
+        if self._refining is None:
+            return
+        assert self.estimate is not None
         previous = self.estimate.probabilities
-        self.estimate = await self._compute(
-            self.perception.refine, self.estimate, self.outcomes, self.request
-        )
+        try:  # a cancelled step leaves the refinement running, to be taken after the stop
+            estimate = await asyncio.shield(self._refining)
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            self._refining = None
+            if not after_stop:
+                raise
+            log.exception("session %s: the last refinement failed", self.session_id)
+            return
+        self._refining, self.estimate = None, estimate
         flipped = int(np.count_nonzero((self.estimate.probabilities > 0.5) != (previous > 0.5)))
         self.recorder.log_metric("voxels_flipped", flipped)
         await self._add_estimate_to_bound()
         await self._record_shape()
         self.times.mark()
-        return self._select_or_done()
 
     def _select_or_done(self) -> State:
         """After a touch: the next one, or done when the touch budget is spent."""

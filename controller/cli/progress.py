@@ -88,6 +88,22 @@ def _yes(value: Any) -> str:
     return "yes" if value else "no "
 
 
+def _times_row(summary: dict[str, Any]) -> tuple[str, str]:
+    """The time the robot waited for the computer against the time it moved. On the simulated
+    bench, over the touches (as ``bench service``'s ``compute_over_motion``): the robot's time
+    is the simulation's clock, what a real robot would take, not the wall time the simulator
+    computed for."""
+    simulated = summary.get("per_touch_sim_s")
+    if not simulated:
+        return "compute / motion", f"{summary['compute_s']:.1f} s / {summary['motion_s']:.1f} s"
+    compute_s, robot_s = sum(summary["per_touch_compute_s"]), sum(simulated)
+    return (
+        "compute / robot",
+        f"{compute_s:.1f} s / {robot_s:.1f} s simulated over the touches "
+        f"({compute_s / robot_s:.0%}; {robot_s / len(simulated):.1f} s a touch)",
+    )
+
+
 def print_summary(summary: dict[str, Any], out: TextIO | None = None) -> None:
     """The session's summary as a two-column table: result, touches, times, scores, files."""
     artifacts = summary.get("artifacts", {})
@@ -99,9 +115,7 @@ def print_summary(summary: dict[str, Any], out: TextIO | None = None) -> None:
     if "replay_of" in summary:
         rows.append(("replay of", summary["replay_of"]))
     else:
-        rows.append(
-            ("compute / motion", f"{summary['compute_s']:.1f} s / {summary['motion_s']:.1f} s")
-        )
+        rows.append(_times_row(summary))
     vision = summary.get("vision")
     if vision:
         rows.append(("vision", f"{vision['input']} input, prior {vision['prior']}"))

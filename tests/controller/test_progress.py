@@ -83,3 +83,20 @@ def test_contacts_that_left_no_imprint_are_counted_and_shown() -> None:
     print_summary(summary, out)
     (row,) = [line for line in out.getvalue().splitlines() if line.startswith("touches")]
     assert row.split(maxsplit=1)[1] == "4 (1 contact)"
+
+
+def test_on_the_simulated_bench_compute_is_shown_against_the_robots_simulated_time() -> None:
+    """The simulator computes its motions faster than real time: the robot's time is the
+    simulation's clock, summed over the touches as the compute is."""
+    summary = {"session": "s", "state": "done", "touches": 2, "contacts": 2}
+    summary |= {"compute_s": 5.0, "motion_s": 3.0, "per_touch_compute_s": [1.0, 2.0]}
+    out = io.StringIO()
+    print_summary(summary | {"per_touch_sim_s": [10.0, 20.0]}, out)
+    (row,) = [line for line in out.getvalue().splitlines() if line.startswith("compute")]
+    assert row == (
+        "compute / robot  3.0 s / 30.0 s simulated over the touches (10%; 15.0 s a touch)"
+    )
+    out = io.StringIO()
+    print_summary(summary, out)  # real devices: their wall time is the robot's
+    (row,) = [line for line in out.getvalue().splitlines() if line.startswith("compute")]
+    assert row == "compute / motion  5.0 s / 3.0 s"
