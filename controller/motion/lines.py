@@ -78,6 +78,19 @@ class Waypoint:
     start_joints_rad: FloatArray | None = None
 
 
+def duration_s(start_world_tcp: FloatArray, start_joints_rad: FloatArray, move: Waypoint) -> float:
+    """How long a move takes at its speed, without the acceleration ramps: a line its TCP travel
+    (or, for a turn in place, the tool's reach times the angle) over its speed; a joint move its
+    largest joint turn over its joint speed."""
+    if move.kind == "joints":
+        start = start_joints_rad if move.start_joints_rad is None else move.start_joints_rad
+        return float(np.max(np.abs(move.joints_rad - start))) / move.speed_m_s
+    distance = float(np.linalg.norm(move.pose_world_tcp[:3, 3] - start_world_tcp[:3, 3]))
+    angle = rotation_angle_between(start_world_tcp[:3, :3], move.pose_world_tcp[:3, :3])
+    travel = distance if distance >= PURE_TURN_M else max(distance, TOOL_REACH_M * angle)
+    return travel / move.speed_m_s
+
+
 class CheckedMotions:
     """Plans single checked motions for the arm; holds no robot state."""
 
@@ -165,11 +178,14 @@ class CheckedMotions:
         near_parts: tuple[str, ...] = (),
         joint_move_check: PoseCheck | None = None,
     ) -> Waypoint:
-        """A checked straight line or, when that passes too near a singularity (only then:
-        a line refused by an obstacle stays refused), a checked joint move to the same pose,
-        its poses passing ``joint_move_check`` too."""
+        """A checked straight line or a checked joint move to the same pose, its poses passing
+        ``joint_move_check`` too: the joint move when the line passes too near a singularity
+        (only then: a line refused by an obstacle stays refused), or when the joint rates slow
+        the line so much that the joint move arrives sooner (near a wrist singularity a line
+        may crawl at a few mm/s for tens of seconds)."""
+        start_joints = check_reachable(start_world_tcp, self.pose_world_base, joints_rad)
         try:
-            return self.line(
+            line = self.line(
                 start_world_tcp,
                 end_world_tcp,
                 joints_rad,
@@ -181,7 +197,23 @@ class CheckedMotions:
             )
         except SingularityViolation as violation:
             singular = violation
-        start_joints = check_reachable(start_world_tcp, self.pose_world_base, joints_rad)
+        else:
+            if line.speed_m_s >= speed_m_s:
+                return line
+            try:
+                joints = self.joint_move_to(
+                    start_joints,
+                    end_world_tcp,
+                    obstacles,
+                    label,
+                    exempt_parts=exempt_parts,
+                    near_parts=near_parts,
+                    pose_check=joint_move_check,
+                )
+            except SafetyViolation:
+                return line
+            line_s = duration_s(start_world_tcp, start_joints, line)
+            return joints if duration_s(start_world_tcp, start_joints, joints) < line_s else line
         try:
             return self.joint_move_to(
                 start_joints,
@@ -392,7 +424,9 @@ class CheckedMotions:
             # speed limit); at the TCP speed it lasts at least distance / speed. (A pure turn is
             # timed by the tool's reach instead.)
             seconds = joint_rad_per_fraction / self.limits.max_joint_speed_rad_s
-            travel = distance if distance >= PURE_TURN_M else TOOL_REACH_M * angle
+            # (A line shorter than PURE_TURN_M without a turn, as a retreat of one approach
+            # step, is timed by its distance.)
+            travel = distance if distance >= PURE_TURN_M else max(distance, TOOL_REACH_M * angle)
             speed_m_s = min(speed_m_s, travel / seconds)
         if speed_m_s < MIN_LINE_SPEED_M_S:
             raise SingularityViolation(

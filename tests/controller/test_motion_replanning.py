@@ -13,7 +13,12 @@ import trimesh
 
 from controller.config import Config, LimitsConfig
 from controller.motion.executor import MotionExecutor
-from controller.motion.lines import TOOL_REACH_M, SingularityViolation, tool_reach_along
+from controller.motion.lines import (
+    TOOL_REACH_M,
+    SingularityViolation,
+    duration_s,
+    tool_reach_along,
+)
 from controller.motion.planner import (
     APPROACH_EXEMPT_PARTS,
     APPROACH_NEAR_PARTS,
@@ -337,3 +342,44 @@ async def test_a_joint_move_starts_only_from_the_joints_it_was_checked_from() ->
         await executor_for(arm, world, plan, log).move(move)
     np.testing.assert_allclose(world.joints_rad, elsewhere)
     assert log.motions == []
+
+
+def test_a_line_shorter_than_a_millimetre_is_timed_by_its_distance() -> None:
+    """A retreat from one 0.5 mm approach step back to where the steps began: a short straight
+    line, not a "singularity" (timed by a turn it does not make, its speed would be 0)."""
+    plan = planner()
+    touch = plan.touch_geometry((0.02, -0.06, 0.1), (-0.17, 0.98, 0.0))
+    start = touch.pose_world_tcp_start
+    stepped = start.copy()
+    stepped[:3, 3] += 0.0005 * touch.direction_world
+    joints = check_reachable(stepped, POSE_WORLD_BASE, HOME)
+    back = plan.line(
+        stepped, start, joints, Obstacles.none(), speed_m_s=LIMITS.max_tcp_speed_m_s, label="back"
+    )
+    assert back.speed_m_s > 0.01
+
+
+def test_a_transit_line_the_joint_rates_slow_to_a_crawl_becomes_the_faster_joint_move() -> None:
+    """Two touches from above, tilted 10 mrad: the line passes the wrist singularity
+    10 mrad off, allowed, but its joint rates hold the TCP to ~4 mm/s (12 cm in ~29 s). The
+    transit moves the joints instead (~0.5 s), checked as every joint move. A line the joint
+    rates do not slow (between two side touches 4 cm apart) stays a line."""
+    plan = planner()
+    speed = LIMITS.max_tcp_speed_m_s
+    for direction, kind in (((0.01, 0.0, -1.0), "joints"), ((0.0, 1.0, 0.0), "line")):
+        start = plan.touch_geometry((0.12, 0.0, 0.1), direction).pose_world_tcp_start
+        goal = plan.touch_geometry((0.12, 0.0, 0.14), direction).pose_world_tcp_start
+        if kind == "joints":
+            goal = plan.touch_geometry((0.24, 0.0, 0.1), direction).pose_world_tcp_start
+        joints = check_reachable(start, POSE_WORLD_BASE, HOME)
+        line = plan.line(start, goal, joints, Obstacles.none(), speed_m_s=speed, label="across")
+        move = plan.line_or_joints(
+            start, goal, joints, Obstacles.none(), speed_m_s=speed, label="across"
+        )
+        assert move.kind == kind
+        np.testing.assert_allclose(move.pose_world_tcp, goal)
+        if kind == "joints":
+            assert line.speed_m_s < 0.005
+            assert duration_s(start, joints, move) < duration_s(start, joints, line) / 10
+        else:
+            assert move.speed_m_s == line.speed_m_s == speed
