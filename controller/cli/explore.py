@@ -28,7 +28,7 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
         "--update",
         choices=["global", "fused", "prior", "direct"],
         default=None,
-        help="how touches change the shape (default: the config's, fused)",
+        help="how touches change the shape (default: the config's, global)",
     )
     explore.add_argument(
         "--input",
