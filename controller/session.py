@@ -15,6 +15,7 @@ approach, which is checked again against it.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import time
 from collections.abc import Awaitable, Callable
@@ -25,7 +26,12 @@ import numpy as np
 
 from controller.config import Config
 from controller.motion.executor import HomeError, MotionExecutor, UnexpectedForceError
-from controller.motion.planner import MotionPlanner, TouchGeometry, home_pose_world_tcp
+from controller.motion.planner import (
+    MotionPlanner,
+    TouchGeometry,
+    home_pose_world_tcp,
+    rolls_preferring,
+)
 from controller.motion.safety import (
     POSSIBLE_OCCUPANCY,
     Obstacles,
@@ -53,7 +59,7 @@ from controller.session_files import (
 )
 from controller.session_times import SessionTimes
 from controller.states import STEP_TIMEOUT_S, TRANSITIONS, State
-from controller.targets import onto_measured, pad_paths_meet, repeat_reason
+from controller.targets import onto_measured, pad_paths_meet, repeat_reason, window_leading_roll
 from drivers.base import DeviceError, TactileFrame
 from drivers.factory import Devices
 from drivers.tool import ToolModel
@@ -342,7 +348,11 @@ class ExplorationSession:
             return self._stop("no safe, reachable target is left")
         # A perception that ignored ``allowed`` may propose a sure miss: the planner still
         # checks it on the approach.
-        self._target = self._onto_measured(self._target) or self._target
+        target = self._onto_measured(self._target) or self._target
+        occupied = self.estimate.occupied_points_world()
+        width = self.config.motion.touch_width_m
+        roll = window_leading_roll(target, occupied, self.tool, width)
+        self._target = dataclasses.replace(target, roll_rad=roll)
         threshold = self.config.models.policy_stop_uncertainty
         if self._target.uncertainty < threshold:
             return self._stop(
@@ -386,6 +396,7 @@ class ExplorationSession:
             target.direction_world,
             obstacles,
             came_from=self._came_from,
+            rolls_rad=rolls_preferring(target.roll_rad),
         )
         try:
             touch_plan = await self._compute(plan)
@@ -407,12 +418,9 @@ class ExplorationSession:
             await self._take_refined()
             try:  # the refined estimate adds to the bound the approach keeps clear of
                 joints = (await self._device(self.devices.arm.state())).joints_rad
+                check = partial(self.planner.check_touch, rolls_rad=(touch_plan.roll_rad,))
                 await self._compute(
-                    self.planner.check_touch,
-                    target.target_world,
-                    target.direction_world,
-                    joints,
-                    self.obstacles(),
+                    check, target.target_world, target.direction_world, joints, self.obstacles()
                 )
             except SafetyViolation as violation:
                 log.warning("target %s refused after refining: %s", target.target_world, violation)

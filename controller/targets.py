@@ -10,7 +10,10 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from controller.motion.planner import TOUCH_ROLLS_RAD, pad_pose_facing, tcp_pose_for_pad
 from controller.perception.protocol import TouchOutcome, TouchTarget
+from drivers.tool import ToolModel
+from models.geometry import invert_transform
 from models.object_bound import ObjectBound
 
 REJECTED_TARGET_RADIUS_M = 0.01
@@ -22,6 +25,15 @@ angle of its direction, would be a near repeat: it is not proposed."""
 PAD_RADIUS_M = 0.007
 """The measured surface within this distance of a target's approach line is what the gel's
 window (19 x 14 mm) meets first."""
+
+LEADING_PARTS = ("gelsight_housing", "finger_sensor_side")
+"""The rigid parts beside and behind the gel's window that can meet a surface before it (a touch
+that stops on them leaves no imprint)."""
+LEADING_PUSHES_M = (0.0, 0.005, 0.01)
+"""How far past the estimated surface the pad is placed when a roll is scored: the surface may
+be that much further (the window stands ``housing_recess_m``, 10 mm, proud of the housing)."""
+LEADING_NEAR_M = 0.12
+"""Only estimate points this near the target can meet the parts scored."""
 
 PadPath = tuple[float, float]
 """The pad's path about a target: (approach distance before it, the fingers' reach past it),
@@ -92,3 +104,39 @@ def repeat_reason(
         if lateral < MISSED_LINE_RADIUS_M and cosine > np.cos(np.radians(MISSED_LINE_ANGLE_DEG)):
             return "a near repeat of a touch that met nothing"
     return None
+
+
+def window_leading_roll(
+    target: TouchTarget,
+    occupied_points_world: NDArray[np.float64],
+    tool: ToolModel,
+    width_m: float,
+    rolls_rad: Sequence[float] = TOUCH_ROLLS_RAD,
+) -> float:
+    """The roll about the approach line (of ``rolls_rad``, the planner's) at which the estimate
+    leaves the GelSight housing and the sensor-side finger clearest while the window presses
+    on: the fewest estimate points inside those parts with the pad at the target and
+    ``LEADING_PUSHES_M`` past it. The window (19 x 14 mm) is longer than wide and the housing
+    reaches 8 mm past its ends but 3 mm past its sides, so on a part narrower than the housing
+    or a face tilted along the finger the roll decides which meets the surface first. Ties keep
+    the planner's order (its first roll is preferred for the wrist)."""
+    direction = np.asarray(target.direction_world, dtype=float)
+    direction = direction / np.linalg.norm(direction)
+    points = np.asarray(occupied_points_world, dtype=float)
+    near = np.linalg.norm(points - target.target_world, axis=1) <= LEADING_NEAR_M
+    points = np.c_[points[near], np.ones(int(near.sum()))]
+    if len(points) == 0:
+        return float(rolls_rad[0])
+    boxes = [box for box in tool.rigid_boxes(width_m) if box.name in LEADING_PARTS]
+    best_roll, best_inside = float(rolls_rad[0]), None
+    for roll in rolls_rad:
+        inside = 0
+        for push in LEADING_PUSHES_M:
+            pose_world_pad = pad_pose_facing(target.target_world, -direction, -push, roll)
+            pose_world_tcp = tcp_pose_for_pad(pose_world_pad, tool, width_m)
+            for box in boxes:
+                in_box = (invert_transform(pose_world_tcp @ box.pose_tcp_box) @ points.T)[:3].T
+                inside += int(np.all(np.abs(in_box) <= box.half_extents_m, axis=1).sum())
+        if best_inside is None or inside < best_inside:
+            best_roll, best_inside = float(roll), inside
+    return best_roll

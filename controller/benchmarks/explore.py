@@ -19,13 +19,14 @@ import numpy as np
 import torch
 
 from controller.benchmarks.explore_summary import METRICS, mean_runs, summarise
-from controller.benchmarks.sim_touch import SimTouchBench
+from controller.benchmarks.sim_touch import TOUCH_START_WIDTH_M, SimTouchBench
 from controller.benchmarks.timing import Stopwatch
 from controller.benchmarks.touch_latency import latency_figures
 from controller.config import Config
 from controller.perception.learned import FUSED_UPDATES, LearnedPerception
 from controller.perception.protocol import ShapeEstimate, TouchOutcome, TouchTarget
 from controller.request import ExploreRequest
+from controller.targets import window_leading_roll
 from models.geometry import make_transform, rotation_about_axis
 from models.metrics import (
     SURFACE_SAMPLES,
@@ -321,6 +322,11 @@ def _explore(run: ObjectRun, method: str, run_index: int, tick: Callable[[], Non
         else:
             allowed = partial(checks, run.bench.allowed)
             target = select(perception.select, estimate, request, outcomes, allowed)
+            if target is not None:  # as a session does (the bench's tool placed by the pad)
+                occupied = estimate.occupied_points_world()
+                tool = run.bench.world.tool
+                roll = window_leading_roll(target, occupied, tool, TOUCH_START_WIDTH_M)
+                target = replace(target, roll_rad=roll)
             chosen = None if target is None else trial(target)
         select_s = sum(select.wall_s) - sum(checks.wall_s)
         tick()

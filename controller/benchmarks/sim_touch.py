@@ -94,14 +94,15 @@ class SimTouchBench:
     def approach_start(self, target: TouchTarget) -> FloatArray | None:
         """Pad pose (world, 4x4) where the sweep toward ``target`` starts, or None when no
         start within ``MAX_START_STANDOFF_M`` is clear."""
-        standoff = START_STANDOFF_M
-        while standoff <= MAX_START_STANDOFF_M + 1e-9:
-            pose_world_pad = pad_pose_facing(
-                target.target_world, -np.asarray(target.direction_world), standoff
-            )
-            if self._clear(pose_world_pad):
-                return pose_world_pad
-            standoff += START_BACKOFF_STEP_M
+        for roll in dict.fromkeys((target.roll_rad, 0.0)):  # the target's roll, else none
+            standoff = START_STANDOFF_M
+            while standoff <= MAX_START_STANDOFF_M + 1e-9:
+                pose_world_pad = pad_pose_facing(
+                    target.target_world, -np.asarray(target.direction_world), standoff, roll
+                )
+                if self._clear(pose_world_pad):
+                    return pose_world_pad
+                standoff += START_BACKOFF_STEP_M
         return None
 
     def allowed(self, target: TouchTarget) -> bool:

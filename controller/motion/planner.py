@@ -61,6 +61,13 @@ TOUCH_ROLLS_RAD = tuple(np.radians(d) for d in (0.0, 30.0, -30.0, 60.0, -60.0))
 """Rolls of the tool about the approach line a touch tries, preferred first: rolled, the wrist
 is away from a singularity the unrolled tool meets. Never a half-turn: the gripper body would
 then hang below the pad, toward the table."""
+
+
+def rolls_preferring(roll_rad: float) -> tuple[float, ...]:
+    """``TOUCH_ROLLS_RAD`` with ``roll_rad`` (a target's preferred roll) tried first."""
+    return (roll_rad, *(r for r in TOUCH_ROLLS_RAD if abs(r - roll_rad) > 1e-9))
+
+
 APPROACH_EXTENSIONS_M = (0.0, 0.03, 0.06, 0.1)
 """How much further back than ``approach_distance_m`` an approach may start when where the object
 may be (seen from one view, its hidden back is a deep shadow) reaches the usual start."""

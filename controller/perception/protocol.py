@@ -88,6 +88,9 @@ class TouchTarget:
     uncertainty: float = 1.0
     """The policy's uncertainty about the touched window, 0 (certain) to 1 (every probe at
     v = 0.5); 1 when the policy does not measure it (random)."""
+    roll_rad: float = 0.0
+    """The tool's roll about the approach line to try first (``controller.targets.
+    window_leading_roll``: where the estimate leaves the housing and fingers clearest)."""
 
 
 @dataclass(frozen=True)

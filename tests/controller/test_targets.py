@@ -5,9 +5,17 @@ from __future__ import annotations
 
 import numpy as np
 
+from controller.config import Config
+from controller.motion.planner import (
+    TOUCH_ROLLS_RAD,
+    pad_pose_facing,
+    rolls_preferring,
+    tcp_pose_for_pad,
+)
 from controller.perception.protocol import TouchMeasurement, TouchOutcome, TouchTarget
-from controller.targets import onto_measured, pad_paths_meet, repeat_reason
+from controller.targets import onto_measured, pad_paths_meet, repeat_reason, window_leading_roll
 from drivers.base import TactileFrame
+from drivers.tool import ToolModel
 from models.object_bound import ObjectBound
 
 PAD_PATH_M = (0.06, 0.015)
@@ -66,3 +74,38 @@ def test_near_repeats_of_a_miss_and_of_refused_targets_are_named() -> None:
     assert repeat_reason(from_above, [], outcomes) is None
     refused = [np.array([-0.012, 0.0, 0.04])]
     assert repeat_reason(from_above, refused, []) == "near a target whose motions were refused"
+
+
+def _side_target() -> TouchTarget:
+    return TouchTarget(np.array([0.0, -0.04, 0.06]), np.array([0.0, 1.0, 0.0]))
+
+
+def _points_in_the_housing_at_roll(roll_rad: float, tool: ToolModel, width: float) -> np.ndarray:
+    """A ridge where the GelSight housing's lower end is when the window, rolled so, presses
+    5 mm past the target: what an estimate with an edge beside the target puts there."""
+    target = _side_target()
+    pad = pad_pose_facing(target.target_world, -target.direction_world, -0.005, roll_rad)
+    (housing,) = [b for b in tool.rigid_boxes(width) if b.name == "gelsight_housing"]
+    pose = tcp_pose_for_pad(pad, tool, width) @ housing.pose_tcp_box
+    local = np.random.default_rng(0).uniform(-1, 1, (200, 3)) * housing.half_extents_m * 0.9
+    local[:, 2] = -np.abs(local[:, 2])  # its lower end (toward the finger tip: -z of the box)
+    return (pose[:3, :3] @ local.T).T + pose[:3, 3]
+
+
+def test_the_roll_keeps_the_housing_off_what_the_estimate_puts_beside_the_target() -> None:
+    config = Config()
+    tool = ToolModel(config.gripper, config.sensor)
+    width = config.motion.touch_width_m
+    target = _side_target()
+    # Nothing near the target: the planner's first roll (best for the wrist).
+    assert window_leading_roll(target, np.zeros((0, 3)), tool, width) == TOUCH_ROLLS_RAD[0]
+    flat = np.array([[x, -0.04 + 0.0005, z] for x in np.linspace(-0.04, 0.04, 41)
+                     for z in np.linspace(0.02, 0.1, 41)])  # fmt: skip
+    assert window_leading_roll(target, flat, tool, width) == TOUCH_ROLLS_RAD[0]
+    # A ridge where the housing would be at roll 0: another roll, at which fewer of its points
+    # are inside the housing and the sensor-side finger.
+    ridge = _points_in_the_housing_at_roll(0.0, tool, width)
+    roll = window_leading_roll(target, np.vstack([flat, ridge]), tool, width)
+    assert roll != 0.0
+    assert rolls_preferring(roll)[0] == roll
+    assert sorted(rolls_preferring(roll)) == sorted(TOUCH_ROLLS_RAD)
