@@ -349,9 +349,7 @@ class ExplorationSession:
         # A perception that ignored ``allowed`` may propose a sure miss: the planner still
         # checks it on the approach.
         target = self._onto_measured(self._target) or self._target
-        occupied = self.estimate.occupied_points_world()
-        width = self.config.motion.touch_width_m
-        roll = window_leading_roll(target, occupied, self.tool, width)
+        roll = await self._compute(self._window_leading_roll, target, self.estimate)
         self._target = dataclasses.replace(target, roll_rad=roll)
         threshold = self.config.models.policy_stop_uncertainty
         if self._target.uncertainty < threshold:
@@ -359,6 +357,10 @@ class ExplorationSession:
                 f"the policy's uncertainty {self._target.uncertainty:.3f} is below {threshold}"
             )
         return State.APPROACH
+
+    def _window_leading_roll(self, target: TouchTarget, estimate: ShapeEstimate) -> float:
+        occupied = estimate.occupied_points_world()
+        return window_leading_roll(target, occupied, self.tool, self.config.motion.touch_width_m)
 
     def _stop(self, reason: str) -> State:
         log.info("session %s stops: %s", self.session_id, reason)
