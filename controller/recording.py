@@ -19,12 +19,14 @@ no footer; ``controller.recording_recovery`` (run at service start-up) writes th
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import fcntl
 import json
 import logging
 import os
 import threading
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -443,3 +445,16 @@ def rerun_binary() -> Path:
     """The ``rerun`` binary the rerun-sdk wheel ships, beside ``rerun_cli``: the binary itself,
     as ``python -m rerun_cli`` exits 0 whatever the command returns."""
     return Path(rerun_cli.__file__).with_name("rerun")
+
+
+async def record_in_thread(*calls: Callable[[], object]) -> None:
+    """Record or publish in a worker thread, in order: Rerun's conversion of images and points,
+    the recording's flush at each touch and a shape's encoding take up to tens of milliseconds.
+    The work runs to its end even when the awaiting task is cancelled, so a touch is recorded
+    whole and the recorder is not closed under it."""
+    work = asyncio.ensure_future(asyncio.to_thread(lambda: [call() for call in calls]))
+    try:
+        await asyncio.shield(work)
+    except asyncio.CancelledError:
+        await work
+        raise

@@ -43,6 +43,21 @@ class GroundTruthScores:
         self.on_score = on_score
         self._tasks: list[asyncio.Task[dict[str, float]]] = []
 
+    @classmethod
+    def published(
+        cls,
+        world: SimWorld,
+        recorder: SessionRecorder,
+        publish: Callable[[str, dict], None],
+        session_id: str,
+    ) -> GroundTruthScores:
+        """Scores published on the session's ``score`` topic as they are ready."""
+
+        def on_score(touch: int, scores: dict[str, float]) -> None:
+            publish("score", {"session": session_id, "touch": touch, **scores})
+
+        return cls(world, recorder, on_score)
+
     def add(self, estimate: ShapeEstimate, touch: int) -> None:
         mesh = self.world.object_mesh_world
         self._tasks.append(asyncio.create_task(self._score(estimate, mesh, touch)))

@@ -5,11 +5,8 @@ plus fault and aborted from any working state (see ``TRANSITIONS``). Each state 
 step with a timeout. Perception runs in worker threads so the event loop (Zenoh replies, force
 monitoring) never waits on it. Every transition is published and recorded.
 
-The refinement overlaps the robot's motion (``motion.refine_while_moving``, the default): refine
-starts it in a worker thread; the next target is chosen from the estimate before it (with every
-touch so far written in, so what the touches measured is known to the policy) and the arm moves
-to that target's approach start; the refined estimate is taken there, before the guarded
-approach, which is checked again against it.
+The refinement overlaps the arm's motion to the next target (``motion.refine_while_moving``);
+its estimate is taken at the approach start, which is checked again (docs/controller.md).
 """
 
 from __future__ import annotations
@@ -36,7 +33,6 @@ from controller.motion.safety import (
     POSSIBLE_OCCUPANCY,
     Obstacles,
     SafetyViolation,
-    check_force,
 )
 from controller.perception.protocol import (
     Perception,
@@ -46,7 +42,7 @@ from controller.perception.protocol import (
     TouchTarget,
     contact_counts,
 )
-from controller.recording import SessionRecorder
+from controller.recording import SessionRecorder, record_in_thread
 from controller.request import ExploreRequest
 from controller.scoring import GroundTruthScores
 from controller.session_files import (
@@ -58,8 +54,20 @@ from controller.session_files import (
     touch_rays,
 )
 from controller.session_times import SessionTimes
-from controller.states import STEP_TIMEOUT_S, TRANSITIONS, State
-from controller.targets import onto_measured, pad_paths_meet, repeat_reason, window_leading_roll
+from controller.states import (
+    STEP_TIMEOUT_S,
+    TRANSITIONS,
+    SessionFault,
+    State,
+    check_force_or_fault,
+)
+from controller.targets import (
+    onto_measured,
+    pad_path_m,
+    pad_paths_meet,
+    repeat_reason,
+    window_leading_roll,
+)
 from drivers.base import DeviceError, TactileFrame
 from drivers.factory import Devices
 from drivers.tool import ToolModel
@@ -76,10 +84,6 @@ TARGET_FIELDS = ("target_world", "direction_world")
 MAX_REFUSED_IN_A_ROW = 20
 """Targets the planner refused at the approach one after another before the session stops:
 the checks at select passed them, so the policy could propose such targets without end."""
-
-
-class SessionFault(RuntimeError):
-    """A session stopped on a fault; the message says which device or check."""
 
 
 Publish = Callable[[str, dict[str, Any]], None]
@@ -113,14 +117,7 @@ class ExplorationSession:
         self.publish_shape = publish_shape
         self.pose_world_base = ur_pose_to_matrix(config.robot.arm.pose_world_base)
         self.tool = ToolModel(config.gripper, config.sensor)
-        self.planner = MotionPlanner(
-            tool=self.tool,
-            limits=config.limits,
-            motion=config.motion,
-            pose_world_base=self.pose_world_base,
-            stroke_m=config.gripper.stroke_m,
-            object_point_world=config.voxel_grid.object_point_world,
-        )
+        self.planner = MotionPlanner.for_config(config, self.tool, self.pose_world_base)
         self.home_world_tcp = home_pose_world_tcp(config.robot.arm)
         self.home_clear_of = home_clear_of
         self.state = State.IDLE
@@ -139,13 +136,7 @@ class ExplorationSession:
         self._scores = (
             None
             if world is None
-            else GroundTruthScores(
-                world,
-                recorder,
-                lambda touch, scores: publish(
-                    "score", {"session": session_id, "touch": touch, **scores}
-                ),
-            )
+            else GroundTruthScores.published(world, recorder, publish, session_id)
         )
         self.motion = MotionExecutor(
             devices=devices,
@@ -170,9 +161,8 @@ class ExplorationSession:
         """``measured`` and the shape estimate: what motions keep clear of."""
         self.stop_reason: str | None = None
         self._refused_in_a_row = 0
-        self._refining: asyncio.Task[ShapeEstimate] | None = None
-        """The refinement running in a worker thread while the arm moves (taken by
-        ``_take_refined``)."""
+        self._refining: asyncio.Future[ShapeEstimate] | None = None
+        """The refinement running while the arm moves (``_take_refined`` takes it)."""
         self.skipped: list[dict[str, Any]] = []
         """Targets not touched because no safe motion reaches them, with the reason."""
         self.unexpected_forces: list[dict[str, Any]] = []
@@ -265,18 +255,11 @@ class ExplorationSession:
                 raise SessionFault(str(error)) from None
         gripper_state = await device(devices.gripper.state())
         if abs(gripper_state.width_m - self.config.motion.touch_width_m) > 1e-4:
-            await device(
-                devices.gripper.move(
-                    self.config.motion.touch_width_m,
-                    speed_m_s=0.05,
-                    force_limit_n=self.config.limits.max_force_n,
-                    timeout_s=10.0,
-                )
-            )
+            await self.motion.open_fingers_to_touch_width()
         self._reference = await device(devices.tactile.reference())
         self._frame = await device(devices.camera.read())
         folder = self.recorder.artifacts_dir
-        await self._record(
+        await record_in_thread(
             partial(self.recorder.log_camera, self._frame),
             partial(save_camera_frame, folder, self._frame),
             partial(save_tactile_frame, folder, GELSIGHT_REFERENCE_FILE, self._reference),
@@ -368,15 +351,10 @@ class ExplorationSession:
         return State.DONE
 
     def _onto_measured(self, target: TouchTarget) -> TouchTarget | None:
-        return onto_measured(target, self.measured, self._pad_path_m())
+        return onto_measured(target, self.measured, pad_path_m(self.config))
 
     def _meets_measured(self, targets_world: np.ndarray, direction: np.ndarray) -> np.ndarray:
-        return pad_paths_meet(self.measured, targets_world, direction, self._pad_path_m())
-
-    def _pad_path_m(self) -> tuple[float, float]:
-        """The pad's path before and past a target: the approach distance, the fingers' reach."""
-        motion = self.config.motion
-        return motion.approach_distance_m, (self.config.gripper.stroke_m - motion.touch_width_m) / 2
+        return pad_paths_meet(self.measured, targets_world, direction, pad_path_m(self.config))
 
     def _skip(self, target: TouchTarget, reason: str, stage: str) -> None:
         if len(self.skipped) < MAX_SKIPPED_RECORDS:
@@ -403,11 +381,7 @@ class ExplorationSession:
         try:
             touch_plan = await self._compute(plan)
         except SafetyViolation as violation:
-            log.warning("target %s refused: %s", np.round(target.target_world, 3), violation)
-            self._rejected.append(target.target_world)
-            self._refused_in_a_row += 1
-            self._skip(target, str(violation), "approach")
-            return State.SELECT
+            return self._drop(target, f"refused: {violation}")
         self._touch, waypoints = touch_plan.touch, touch_plan.transit
         self._refused_in_a_row = 0
         came_from = [pose_world_tcp]
@@ -425,10 +399,7 @@ class ExplorationSession:
                     check, target.target_world, target.direction_world, joints, self.obstacles()
                 )
             except SafetyViolation as violation:
-                log.warning("target %s refused after refining: %s", target.target_world, violation)
-                self._rejected.append(target.target_world)
-                self._skip(target, str(violation), "approach")
-                return State.SELECT
+                return self._drop(target, f"refused after refining: {violation}")
         try:
             touched = await self.motion.move_until_contact(touch_plan.approach)
         except UnexpectedForceError as error:
@@ -436,6 +407,14 @@ class ExplorationSession:
         if touched:
             log.info("the pad touched on the approach: the surface is nearer than estimated")
         return State.TOUCH
+
+    def _drop(self, target: TouchTarget, reason: str) -> State:
+        """A target given up at its approach: not proposed again, recorded; back to select."""
+        log.warning("target %s dropped: %s", np.round(target.target_world, 3), reason)
+        self._rejected.append(target.target_world)
+        self._refused_in_a_row += 1
+        self._skip(target, reason, "approach")
+        return State.SELECT
 
     async def _unexpected_force(self, target: TouchTarget, error: UnexpectedForceError) -> State:
         """A rigid part met the object on the approach: back out along the approach line to
@@ -448,25 +427,14 @@ class ExplorationSession:
         self.unexpected_forces.append(event)
         self.recorder.log_event(f"{error}; backed out, target dropped")
         self.publish("event", {"session": self.session_id, "unexpected_force": event})
-        self._rejected.append(target.target_world)
-        self._skip(target, str(error), "approach")
-        return State.SELECT
+        return self._drop(target, str(error))
 
     async def _touch_step(self) -> State:
         assert self._touch is not None and self._target is not None
         assert self._reference is not None
         devices, device = self.devices, self._device
-        limits, motion = self.config.limits, self.config.motion
-        # Also after a contact on the approach: that one only stopped the arm at a light force;
-        # the fingers press on to the contact force (and stop where any rigid part would touch).
-        gripper = await device(
-            devices.gripper.move(
-                self.config.gripper.stroke_m,
-                speed_m_s=motion.finger_speed_m_s,
-                force_limit_n=limits.contact_force_n,
-                timeout_s=STEP_TIMEOUT_S[State.TOUCH] / 2,
-            )
-        )
+        # Also after a contact on the approach: that one only stopped the arm at a light force.
+        gripper = await self.motion.press_fingers(timeout_s=STEP_TIMEOUT_S[State.TOUCH] / 2)
         contact = gripper.blocked
         check_force_or_fault(gripper.force_n, self.config)
         tactile = await device(devices.tactile.read())
@@ -495,7 +463,9 @@ class ExplorationSession:
         number = self.touch_count + 1
         inputs = touch_inputs_record(self.session_id, number, measurement, gripper.width_m)
         folder = self.recorder.artifacts_dir
-        await self._record(partial(save_tactile_frame, folder, inputs["gelsight_image"], tactile))
+        await record_in_thread(
+            partial(save_tactile_frame, folder, inputs["gelsight_image"], tactile)
+        )
         try:
             outcome = await self._compute(self.perception.interpret, measurement)
         except HeightMapError as error:
@@ -503,7 +473,7 @@ class ExplorationSession:
             self.touch_count += 1
             self.recorder.set_touch(self.touch_count)
             log.error("touch %d refused: %s; going on without it", self.touch_count, error)
-            await self._record(
+            await record_in_thread(
                 partial(self.recorder.log_touch, {**inputs, "refused": str(error)}, None)
             )
             body = {"session": self.session_id, "touch": self.touch_count, "contact": contact}
@@ -519,7 +489,7 @@ class ExplorationSession:
         self.touch_count += 1
         self.recorder.set_touch(self.touch_count)
         record = {**inputs, **outcome_record(outcome)}
-        await self._record(
+        await record_in_thread(
             partial(self.recorder.log_tactile, tactile.image_bgr, outcome.height_map_mm),
             partial(self.recorder.log_touch_patch, outcome.touch),
             partial(
@@ -597,22 +567,10 @@ class ExplorationSession:
 
     # --- helpers --------------------------------------------------------------------------------
 
-    async def _record(self, *calls: Callable[[], object]) -> None:
-        """Record or publish in a worker thread, in order: Rerun's conversion of images and
-        points, the recording's flush at each touch and the shape's encoding take up to tens of
-        milliseconds. The work runs to its end even when the step is cancelled, so a touch is
-        recorded whole and the recorder is not closed under it."""
-        work = asyncio.ensure_future(asyncio.to_thread(lambda: [call() for call in calls]))
-        try:
-            await asyncio.shield(work)
-        except asyncio.CancelledError:
-            await work
-            raise
-
     async def _record_shape(self) -> None:
         estimate = self.estimate
         assert estimate is not None
-        await self._record(
+        await record_in_thread(
             partial(self.publish_shape, estimate),
             # The surface takes ~1 s (marching cubes at 1.5 mm): after the publish.
             partial(self.recorder.log_estimate, estimate, vision=self.touch_count == 0),
@@ -635,22 +593,6 @@ class ExplorationSession:
             "skipped_targets": self.skipped,
             "unexpected_forces": self.unexpected_forces,
             "request": self.request.__dict__,
-            "compute_s": round(self.times.compute_s, 3),
-            "motion_s": round(self.times.motion_s, 3),
-            "per_touch_compute_s": self.times.per_touch_compute_s,
-            "per_touch_motion_s": self.times.per_touch_motion_s,
-            **(
-                {"per_touch_sim_s": self.times.per_touch_sim_s}
-                if self.times.sim_clock is not None
-                else {}
-            ),
+            **self.times.summary(),
             "metrics": self.metrics,
         }
-
-
-def check_force_or_fault(force_n: float, config: Config) -> None:
-    """A force over the limit during a touch is a collision: fault."""
-    try:
-        check_force(force_n, config.limits)
-    except SafetyViolation as violation:
-        raise SessionFault(str(violation)) from None

@@ -45,5 +45,17 @@ class SessionTimes:
                 self.per_touch_sim_s.append(round(sim_now - sim_before, 3))
         self._marks.append((now, self.motion_s, sim_now))
 
+    def summary(self) -> dict[str, float | list[float]]:
+        """The figures a session's summary reports (``per_touch_sim_s`` on the bench only)."""
+        figures: dict[str, float | list[float]] = {
+            "compute_s": round(self.compute_s, 3),
+            "motion_s": round(self.motion_s, 3),
+            "per_touch_compute_s": self.per_touch_compute_s,
+            "per_touch_motion_s": self.per_touch_motion_s,
+        }
+        if self.sim_clock is not None:
+            figures["per_touch_sim_s"] = self.per_touch_sim_s
+        return figures
+
     def _sim_now(self) -> float:
         return self.sim_clock() if self.sim_clock is not None else 0.0

@@ -1,9 +1,13 @@
-"""The states of an exploration session, the legal transitions between them and each working
-state's time limit: the finite-state machine that ``controller.session`` runs."""
+"""The states of an exploration session, the legal transitions between them, each working
+state's time limit and what makes a fault: the finite-state machine that ``controller.session``
+runs."""
 
 from __future__ import annotations
 
 from enum import StrEnum
+
+from controller.config import Config
+from controller.motion.safety import SafetyViolation, check_force
 
 
 class State(StrEnum):
@@ -53,3 +57,15 @@ STEP_TIMEOUT_S = {
     State.REFINE: 60.0,
 }
 """Wall-clock limit of each working state; past it the session faults."""
+
+
+class SessionFault(RuntimeError):
+    """A session stopped on a fault; the message says which device or check."""
+
+
+def check_force_or_fault(force_n: float, config: Config) -> None:
+    """A force over the limit during a touch is a collision: fault."""
+    try:
+        check_force(force_n, config.limits)
+    except SafetyViolation as violation:
+        raise SessionFault(str(violation)) from None

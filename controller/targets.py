@@ -1,6 +1,7 @@
-"""Which targets a session still proposes, and where on their line: what was measured (where
-the object may be, touches that met nothing, targets the planner refused) overrides the
-estimate the policy chose them from."""
+"""Which targets a session still proposes, where on their line, and at which roll of the tool:
+what was measured (where the object may be, touches that met nothing, targets the planner
+refused) overrides the estimate the policy chose them from; the roll is the one at which the
+estimate lets the gel's window meet the surface first."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from controller.config import Config
 from controller.motion.planner import TOUCH_ROLLS_RAD, pad_pose_facing, tcp_pose_for_pad
 from controller.perception.protocol import TouchOutcome, TouchTarget
 from drivers.tool import ToolModel
@@ -38,6 +40,13 @@ LEADING_NEAR_M = 0.12
 PadPath = tuple[float, float]
 """The pad's path about a target: (approach distance before it, the fingers' reach past it),
 metres."""
+
+
+def pad_path_m(config: Config) -> PadPath:
+    """The pad's path about a target: the approach distance before it, the fingers' reach
+    past it (half of what the opening can still grow from the approach width)."""
+    motion = config.motion
+    return motion.approach_distance_m, (config.gripper.stroke_m - motion.touch_width_m) / 2
 
 
 def onto_measured(

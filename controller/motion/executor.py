@@ -22,7 +22,7 @@ from controller.motion.planner import MotionPlanner, Waypoint, at_pose
 from controller.motion.safety import Obstacles, SafetyViolation
 from controller.recording import SessionRecorder
 from controller.session_times import SessionTimes
-from drivers.base import ArmState, DeviceError
+from drivers.base import ArmState, DeviceError, GripperState
 from drivers.factory import Devices
 from models.geometry import invert_transform, matrix_to_ur_pose, ur_pose_to_matrix
 
@@ -248,6 +248,19 @@ class MotionExecutor:
         pose, _ = await self.arm_pose()
         if not at_pose(pose, home_world_tcp):
             raise HomeError(f"the arm stopped at {np.round(pose[:3, 3], 3)} m, not at home")
+
+    async def press_fingers(self, *, timeout_s: float) -> GripperState:
+        """The touch: the fingers open slowly to the full stroke, pushing the pad onto the
+        surface, and stop at ``limits.contact_force_n`` (or where any rigid part meets
+        something: the gripper's motor stalls)."""
+        return await self.device(
+            self.devices.gripper.move(
+                self.config.gripper.stroke_m,
+                speed_m_s=self.config.motion.finger_speed_m_s,
+                force_limit_n=self.config.limits.contact_force_n,
+                timeout_s=timeout_s,
+            )
+        )
 
     async def open_fingers_to_touch_width(self) -> None:
         """Fingers to the approach width (closing them draws the pad back from a surface)."""

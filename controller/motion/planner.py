@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from controller.config import LimitsConfig, MotionConfig
+from controller.config import Config, LimitsConfig, MotionConfig
 from controller.motion.lines import TOOL_REACH_M as TOOL_REACH_M
 from controller.motion.lines import (
     CheckedMotions,
@@ -126,6 +126,20 @@ class TouchPlan:
 
 class MotionPlanner(CheckedMotions):
     """Plans checked waypoints for touches and transits; holds no robot state."""
+
+    @classmethod
+    def for_config(
+        cls, config: Config, tool: ToolModel, pose_world_base: FloatArray
+    ) -> MotionPlanner:
+        """The planner of a session under ``config``."""
+        return cls(
+            tool=tool,
+            limits=config.limits,
+            motion=config.motion,
+            pose_world_base=pose_world_base,
+            stroke_m=config.gripper.stroke_m,
+            object_point_world=config.voxel_grid.object_point_world,
+        )
 
     def __init__(
         self,
