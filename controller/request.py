@@ -26,7 +26,9 @@ class ExploreRequest:
     """What a client may ask of an exploration session; every field is optional."""
 
     max_touches: Annotated[int, MAX_TOUCHES] = 10
-    policy: Literal["active", "random"] = "active"
+    policy: Literal["active", "efficient", "random"] = "active"
+    """active: the paper's (the least confident window); efficient: the most expected
+    uncertainty reduction per second of robot time (the planner's); random: the baseline."""
     update: Literal["global", "fused", "prior", "direct"] = "global"
     input: Literal["auto", "rgb", "rgbd"] = "auto"
     """auto: RGB-D when the camera gives depth (the Kinect v2 and the bench do), RGB otherwise."""

@@ -29,11 +29,7 @@ from controller.motion.planner import (
     home_pose_world_tcp,
     rolls_preferring,
 )
-from controller.motion.safety import (
-    POSSIBLE_OCCUPANCY,
-    Obstacles,
-    SafetyViolation,
-)
+from controller.motion.safety import POSSIBLE_OCCUPANCY, Obstacles, SafetyViolation
 from controller.perception.protocol import (
     Perception,
     ShapeEstimate,
@@ -66,6 +62,7 @@ from controller.targets import (
     pad_path_m,
     pad_paths_meet,
     repeat_reason,
+    skip_record,
     window_leading_roll,
 )
 from drivers.base import DeviceError, TactileFrame
@@ -80,7 +77,6 @@ log = logging.getLogger(__name__)
 
 
 MAX_SKIPPED_RECORDS = 200
-TARGET_FIELDS = ("target_world", "direction_world")
 MAX_REFUSED_IN_A_ROW = 20
 """Targets the planner refused at the approach one after another before the session stops:
 the checks at select passed them, so the policy could propose such targets without end."""
@@ -145,8 +141,7 @@ class ExplorationSession:
             times=self.times,
             recorder=recorder,
         )
-        self._device = self.motion.device
-        self._compute = self.motion.compute
+        self._device, self._compute = self.motion.device, self.motion.compute
         self.pose_world_tcp = self.motion.pose_world_tcp
         self._frame = None
         self._reference: TactileFrame | None = None
@@ -299,7 +294,15 @@ class ExplorationSession:
         if self._refining is not None and self._refining.done():
             await self._take_refined()
         obstacles = self.obstacles()
-        joints = (await self._device(self.devices.arm.state())).joints_rad
+        arm = await self._device(self.devices.arm.state())
+        pose, joints = self.pose_world_tcp(arm), arm.joints_rad
+        seconds_to = partial(
+            self.planner.seconds_to_touch, pose, joints, obstacles, self._came_from
+        )
+
+        def robot_seconds(target: TouchTarget) -> float | None:  # the efficient policy's cost
+            target = self._onto_measured(target) or target
+            return seconds_to(target.target_world, target.direction_world)
 
         def allowed(target: TouchTarget) -> bool:
             moved = self._onto_measured(target)
@@ -326,6 +329,7 @@ class ExplorationSession:
             self.outcomes,
             allowed,
             self._meets_measured,
+            robot_seconds,
         )
         if self._target is None:
             return self._stop("no safe, reachable target is left")
@@ -358,9 +362,7 @@ class ExplorationSession:
 
     def _skip(self, target: TouchTarget, reason: str, stage: str) -> None:
         if len(self.skipped) < MAX_SKIPPED_RECORDS:
-            where = {k: np.round(getattr(target, k), 4).tolist() for k in TARGET_FIELDS}
-            record = {"touch": self.touch_count + 1, "stage": stage, **where, "reason": reason}
-            self.skipped.append(record)
+            self.skipped.append(skip_record(target, self.touch_count + 1, stage, reason))
 
     async def _approach(self) -> State:
         assert self._target is not None and self.estimate is not None

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -90,6 +91,14 @@ def pad_paths_meet(
     direction = direction_world / np.linalg.norm(direction_world)
     starts = targets_world - distance * direction
     return measured.lines_meet(starts, direction, distance + reach)
+
+
+def skip_record(target: TouchTarget, touch: int, stage: str, reason: str) -> dict[str, Any]:
+    """A target not touched, as the session's summary lists it (``skipped_targets``)."""
+    where = {
+        k: np.round(getattr(target, k), 4).tolist() for k in ("target_world", "direction_world")
+    }
+    return {"touch": touch, "stage": stage, **where, "reason": reason}
 
 
 def repeat_reason(

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from controller.benchmarks.explore_summary import METRICS, mean_runs, summarise
+from controller.benchmarks.robot_time import PlannedArm
 from controller.benchmarks.sim_touch import TOUCH_START_WIDTH_M, SimTouchBench
 from controller.benchmarks.timing import Stopwatch
 from controller.benchmarks.touch_latency import latency_figures
@@ -46,7 +47,7 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-Policy = Literal["active", "random", "oracle"]
+Policy = Literal["active", "efficient", "random", "oracle"]
 Update = Literal["global", "fused", "prior", "direct"]
 METHODS: dict[str, tuple[Policy, Update]] = {
     "active-fused": ("active", "fused"),
@@ -58,6 +59,8 @@ METHODS: dict[str, tuple[Policy, Update]] = {
     "oracle-prior": ("oracle", "prior"),
     "active-global": ("active", "global"),
     "random-global": ("random", "global"),
+    "efficient-global": ("efficient", "global"),
+    "efficient-fused": ("efficient", "fused"),
 }
 """Method name -> (touch policy, shape update). A method's seeds depend on its position here."""
 MAX_OBJECT_HEIGHT_M, MAX_OBJECT_WIDTH_M = 0.25, 0.20
@@ -191,7 +194,7 @@ class ObjectRun:
     def request(self, policy: Policy, update: Update) -> ExploreRequest:
         return ExploreRequest(
             max_touches=self.settings.touches,
-            policy="random" if policy == "random" else "active",
+            policy="active" if policy == "oracle" else policy,
             update=update,
             input=self.settings.input_mode,
             prior=self.settings.prior,
@@ -307,21 +310,35 @@ def _explore(run: ObjectRun, method: str, run_index: int, tick: Callable[[], Non
     outcomes: list[TouchOutcome] = []
     curves: dict[str, list] = {key: [value] for key, value in start.items()}
     curves.update(
-        select_s=[], refine_s=[], contact=[], imprint=[], touch_loss=[], flipped=[], target=[]
+        select_s=[],
+        refine_s=[],
+        robot_s=[],
+        contact=[],
+        imprint=[],
+        touch_loss=[],
+        flipped=[],
+        target=[],
     )
+    arm = PlannedArm(run.config, run.bench.world.tool, run.bench.world.pose_world_base)
     for touch in range(settings.touches):
         noise = (settings.seed, run.key, method_index, run_index, touch)
         trial = partial(
             run.trial, perception, estimate, outcomes, request=request, noise_seed=noise
         )
-        # The policy's time without the bench's start checks; the oracle's whole choice.
+        # The policy's time with the planner's checks, without the bench's start checks; the
+        # oracle's whole choice (the oracle is not planned: it has no robot time).
         select, checks = Stopwatch(), Stopwatch()
+        arm.set_estimate(estimate)
         if policy == "oracle":
             candidates = select(run.oracle_candidates, perception, estimate, outcomes)
             chosen = select(choose_oracle_trial, candidates, trial)
         else:
-            allowed = partial(checks, run.bench.allowed)
-            target = select(perception.select, estimate, request, outcomes, allowed)
+            allowed = partial(
+                _allowed_by_bench_and_planner, partial(checks, run.bench.allowed), arm
+            )
+            target = select(
+                perception.select, estimate, request, outcomes, allowed, robot_seconds=arm.seconds
+            )
             if target is not None:  # as a session does (the bench's tool placed by the pad)
                 occupied = estimate.occupied_points_world()
                 tool = run.bench.world.tool
@@ -339,6 +356,8 @@ def _explore(run: ObjectRun, method: str, run_index: int, tick: Callable[[], Non
             curves[key].append(value)
         curves["select_s"].append(select_s)
         curves["refine_s"].append(chosen.refine_s)
+        if policy != "oracle":
+            curves["robot_s"].append(arm.touch(chosen.outcome.measurement.target))
         curves["contact"].append(bool(chosen.outcome.measurement.contact))
         curves["imprint"].append(len(chosen.outcome.contact_points_world) > 0)
         curves["touch_loss"].append(list(chosen.loss))
@@ -351,6 +370,13 @@ def _explore(run: ObjectRun, method: str, run_index: int, tick: Callable[[], Non
     for key in METRICS:  # no more touches: the estimate stays as it is
         curves[key] += [curves[key][-1]] * (settings.touches + 1 - len(curves[key]))
     return curves
+
+
+def _allowed_by_bench_and_planner(
+    bench_allowed: Callable[[TouchTarget], bool], arm: PlannedArm, target: TouchTarget
+) -> bool:
+    """A target the bench can start a sweep toward and the session's planner reaches."""
+    return bench_allowed(target) and arm.allowed(target)
 
 
 def _object_row(

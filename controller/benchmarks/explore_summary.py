@@ -17,6 +17,21 @@ METRICS = ("chamfer_mm", "fscore_5mm", "fscore_2mm", "iou", "touch_fidelity_mm")
 the median distance from the contact points so far to the surface, None before a contact)."""
 
 
+TIMES = ("select_s", "refine_s", "robot_s")
+"""Per touch: the policy's choice (with the planner's checks), the refinement, and the robot
+time the session's planner gives the touch (``robot_time``; none for the oracle)."""
+
+
+def robot_seconds_curve(result: dict) -> list[float | None]:
+    """A result's robot time after 0..N touches (seconds; None after the touches it made, or
+    for a method without robot times): the running sum of its ``robot_s``."""
+    times = result.get("robot_s") or []
+    if not times or any(t is None for t in times):
+        return [None] * len(result["chamfer_mm"])
+    total = [0.0, *np.cumsum(times).tolist()]
+    return total + [None] * (len(result["chamfer_mm"]) - len(total))
+
+
 def _mean_curve(curves: Sequence[Sequence[float | None]]) -> list[float | None]:
     """Pointwise mean over the finite values (None where there are none)."""
     return [finite_mean(values) for values in zip(*curves, strict=True)]
@@ -26,8 +41,8 @@ def mean_runs(runs: list[dict]) -> dict:
     """The mean curves of several seeded runs, with the runs themselves."""
     mean: dict[str, Any] = {key: _mean_curve([r[key] for r in runs]) for key in METRICS}
     made = min(r["touches_made"] for r in runs)  # timings: over the touches every run made
-    for key in ("select_s", "refine_s"):
-        mean[key] = _mean_curve([r[key][:made] for r in runs])
+    for key in TIMES:
+        mean[key] = _mean_curve([r.get(key, [])[:made] for r in runs])
     mean["touches_made"] = float(np.mean([r["touches_made"] for r in runs]))
     mean["runs"] = runs
     return mean
@@ -89,9 +104,10 @@ def summarise(objects: Sequence[dict], methods: Sequence[str], touches: int) -> 
             [change_pct(r["chamfer_mm"][0], r["chamfer_mm"][-1]) for r in results]
         )
         entry["empty_predictions_at_end"] = sum(r["chamfer_mm"][-1] is None for r in results)
-        for key in ("select_s", "refine_s"):
-            values = [v for r in results for v in r[key] if v is not None]
+        for key in TIMES:
+            values = [v for r in results for v in r.get(key, []) if v is not None]
             entry[f"{key}_median"] = float(np.median(values)) if values else None
+        entry["robot_s_cumulative"] = _mean_curve([robot_seconds_curve(r) for r in results])
         entry["touches"] = _touch_statistics(results)
         summary["methods"][method] = entry
     curves = {m: summary["methods"][m]["chamfer_mm"] for m in methods}
@@ -209,24 +225,31 @@ def _global_bar(
 
 
 def plot_curves(result: dict, path: Path) -> None:
-    """The paper's figure: mean Chamfer distance versus number of touches, one curve per
-    method (PNG, matplotlib Agg)."""
+    """The paper's figure, mean Chamfer distance versus number of touches, one curve per
+    method; beside it the same against the mean robot time spent (methods with robot times
+    only). PNG, matplotlib Agg."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    figure, axes = plt.subplots(figsize=(6.0, 4.0), dpi=120)
+    figure, (by_touch, by_time) = plt.subplots(1, 2, figsize=(11.0, 4.0), dpi=120, sharey=True)
     for method, entry in result["summary"]["methods"].items():
-        curve = [np.nan if v is None else v for v in entry["chamfer_mm"]]
-        axes.plot(range(len(curve)), curve, marker="o", markersize=3, label=method)
-    axes.set_xlabel("number of touches")
-    axes.set_ylabel("mean Chamfer distance (mm)")
-    axes.set_title(
+        curve = np.array([np.nan if v is None else v for v in entry["chamfer_mm"]])
+        by_touch.plot(range(len(curve)), curve, marker="o", markersize=3, label=method)
+        seconds = entry.get("robot_s_cumulative") or []
+        seconds = np.array([np.nan if v is None else v for v in seconds])
+        if seconds.size and np.isfinite(seconds).any():
+            by_time.plot(seconds, curve[: seconds.size], marker="o", markersize=3, label=method)
+    by_touch.set_xlabel("number of touches")
+    by_touch.set_ylabel("mean Chamfer distance (mm)")
+    by_time.set_xlabel("mean robot time (s, the session's planner)")
+    figure.suptitle(
         f"{result['summary']['objects']} objects, prior {result['prior']} ({result['input']})"
     )
-    axes.grid(alpha=0.3)
-    axes.legend()
+    for axes in (by_touch, by_time):
+        axes.grid(alpha=0.3)
+    by_touch.legend()
     figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path)

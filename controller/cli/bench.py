@@ -20,10 +20,11 @@ if TYPE_CHECKING:
     from models.prior.shape_prior import ShapePrior
 
 METHODS = (
-    "active-fused,random-fused,oracle-fused,active-prior,random-prior,active-direct,oracle-prior"
+    "active-global,random-global,efficient-global,active-fused,random-fused,efficient-fused,"
+    "oracle-fused,active-prior,random-prior,active-direct,oracle-prior"
 )
 """All methods (``controller.benchmarks.explore.METHODS`` defines them)."""
-DEFAULT_METHODS = "active-global,random-global,active-fused,active-prior"
+DEFAULT_METHODS = "active-global,random-global,efficient-global,active-fused,active-prior"
 EPILOG = """examples:
   touchshape bench explore --touches 10 --methods active-fused,random-fused,active-prior,\
 oracle-fused --random-runs 10 --workers 2 --json logs/bench_explore.json --plot docs/explore.png

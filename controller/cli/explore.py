@@ -23,7 +23,13 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
     explore.add_argument("--config", type=Path, default=None, help="TOML config file")
     explore.add_argument("--object", help="sim object: category or mesh file (default: config)")
     explore.add_argument("--touches", type=int, default=10, help="touch budget (1..100)")
-    explore.add_argument("--policy", choices=["active", "random"], default="active")
+    explore.add_argument(
+        "--policy",
+        choices=["active", "efficient", "random"],
+        default="active",
+        help="active: the paper's policy (least confident window); efficient: most expected "
+        "uncertainty reduction per second of robot time; random: the baseline",
+    )
     explore.add_argument(
         "--update",
         choices=["global", "fused", "prior", "direct"],

@@ -27,6 +27,7 @@ from controller.motion.lines import (
     CheckedMotions,
     SingularityViolation,
     Waypoint,
+    duration_s,
     first_allowed,
     tool_reach_along,
 )
@@ -283,6 +284,45 @@ class MotionPlanner(CheckedMotions):
                 continue
             return TouchPlan(touch, transit, approach, float(roll))
         raise _refused_at_every_roll(refusals, rolls_rad)
+
+    def seconds_to_touch(
+        self,
+        pose_world_tcp: FloatArray,
+        joints_rad: FloatArray,
+        obstacles: Obstacles,
+        came_from: Sequence[FloatArray],
+        target_world: ArrayLike,
+        direction_world: ArrayLike,
+    ) -> float | None:
+        """The robot time (``touch_seconds``) of the touch ``plan_touch`` plans from the arm's
+        pose and joints (reached through ``came_from``), or None when the planner refuses it."""
+        try:
+            plan = self.plan_touch(
+                pose_world_tcp,
+                joints_rad,
+                target_world,
+                direction_world,
+                obstacles,
+                came_from=came_from,
+            )
+        except SafetyViolation:
+            return None
+        return self.touch_seconds(plan, pose_world_tcp, joints_rad)
+
+    def touch_seconds(
+        self, plan: TouchPlan, pose_world_tcp: FloatArray, joints_rad: FloatArray
+    ) -> float:
+        """The robot time a planned touch takes from the arm's pose and joints, at the planned
+        speeds without acceleration ramps: the transit, the approach, the fingers opening the
+        pad across the stand-off onto the surface and back (the pad moves at half the finger
+        speed), and the retract along the approach line at the TCP speed limit."""
+        seconds, pose, joints = 0.0, pose_world_tcp, joints_rad
+        for move in (*plan.transit, plan.approach):
+            seconds += duration_s(pose, joints, move)
+            pose, joints = move.pose_world_tcp, move.joints_rad
+        press_s = 2.0 * self.motion.standoff_m / (0.5 * self.motion.finger_speed_m_s)
+        line_m = float(np.linalg.norm(plan.touch.pad_start_world - plan.touch.target_world))
+        return seconds + press_s + line_m / self.limits.max_tcp_speed_m_s
 
     def check_touch(
         self,

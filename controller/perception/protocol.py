@@ -93,6 +93,11 @@ class TouchTarget:
     window_leading_roll``: where the estimate leaves the housing and fingers clearest)."""
 
 
+RobotSeconds = Callable[[TouchTarget], "float | None"]
+"""A touch's robot time from where the arm is (transit, approach, press, retract; seconds), or
+None when the planner refuses it (``MotionPlanner.touch_seconds``)."""
+
+
 @dataclass(frozen=True)
 class TouchMeasurement:
     """What the robot measured on one touch, before interpretation."""
@@ -152,10 +157,12 @@ class Perception(Protocol):
         outcomes: list[TouchOutcome],
         allowed: Callable[[TouchTarget], bool],
         feasible: TargetFilter | None = None,
+        robot_seconds: RobotSeconds | None = None,
     ) -> TouchTarget | None:
         """The next touch among those ``allowed`` accepts; None when nothing is worth touching.
         ``feasible`` (vectorised, cheap) narrows the candidates first: a policy that searches
-        many windows uses it to pick among those that pass."""
+        many windows uses it to pick among those that pass. ``robot_seconds`` (the planner's)
+        is what a touch would cost the robot, for a policy that weighs it."""
         ...
 
     def interpret(self, measurement: TouchMeasurement) -> TouchOutcome: ...

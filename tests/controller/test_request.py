@@ -48,7 +48,7 @@ def test_valid_requests_over_the_defaults() -> None:
         ({"max_touches": "3"}, "'max_touches' must be an integer in 1..100, got '3'"),
         ({"max_touches": 2.5}, "'max_touches' must be an integer in 1..100, got 2.5"),
         ({"max_touches": True}, "'max_touches' must be an integer in 1..100, got True"),
-        ({"policy": "greedy"}, "'policy' must be one of 'active', 'random'"),
+        ({"policy": "greedy"}, "'policy' must be one of 'active', 'efficient', 'random'"),
         ({"update": "gp"}, "'update' must be one of 'global', 'fused', 'prior', 'direct'"),
         ({"touches": 3}, "unknown key 'touches'"),
     ],

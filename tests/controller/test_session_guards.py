@@ -11,6 +11,7 @@ import logging
 from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -212,6 +213,7 @@ class FirstTargetUnderTheTable(CylinderPerception):
         outcomes: list[TouchOutcome],
         allowed: Callable[[TouchTarget], bool],
         feasible: object = None,
+        robot_seconds: object = None,
     ) -> TouchTarget | None:
         self.calls += 1
         if self.calls == 1:
@@ -258,6 +260,7 @@ class OnlyOutsideTheWorkspace(CylinderPerception):
         outcomes: list[TouchOutcome],
         allowed: Callable[[TouchTarget], bool],
         feasible: object = None,
+        robot_seconds: object = None,
     ) -> TouchTarget | None:
         if getattr(self, "proposed", False):
             return None
@@ -287,6 +290,7 @@ class AlwaysOutsideTheWorkspace(CylinderPerception):
         outcomes: list[TouchOutcome],
         allowed: Callable[[TouchTarget], bool],
         feasible: object = None,
+        robot_seconds: object = None,
     ) -> TouchTarget | None:
         return TouchTarget(np.array([0.37, 0.0, 0.05]), np.array([-1.0, 0.0, 0.0]))
 
@@ -302,3 +306,38 @@ async def test_a_policy_that_keeps_proposing_refused_targets_ends_the_session(
     assert states.count("approach") == MAX_REFUSED_IN_A_ROW
     assert len(summary["skipped_targets"]) == MAX_REFUSED_IN_A_ROW
     assert moves == []
+
+
+class TimesItsTargets(CylinderPerception):
+    """Asks the session what its targets would cost the robot, as the efficient policy does,
+    and what the planner-refused target under the table would."""
+
+    seconds: ClassVar[list[float | None]] = []
+
+    def select(
+        self,
+        estimate: ShapeEstimate,
+        request: ExploreRequest,
+        outcomes: list[TouchOutcome],
+        allowed: Callable[[TouchTarget], bool],
+        feasible: object = None,
+        robot_seconds: Callable[[TouchTarget], float | None] | None = None,
+    ) -> TouchTarget | None:
+        assert robot_seconds is not None
+        target = super().select(estimate, request, outcomes, allowed)
+        assert target is not None
+        self.seconds += [robot_seconds(target), robot_seconds(FirstTargetUnderTheTable.refused)]
+        return target
+
+
+async def test_the_session_gives_the_policy_the_planners_robot_time(tmp_path: Path) -> None:
+    """From home the first touch pays a transit around the object; the second starts next to
+    where the first left the arm (the cylinder's targets are 10 degrees apart): it costs less.
+    A target the planner refuses costs nothing: it has no time."""
+    TimesItsTargets.seconds = []
+    summary, _, _, _ = await explore(tmp_path, perception=TimesItsTargets, touches=2)
+    assert summary["touches"] == 2, summary["error"]
+    first, refused, second, refused_again = TimesItsTargets.seconds
+    assert refused is None and refused_again is None
+    assert first is not None and second is not None
+    assert 0 < second < first

@@ -162,7 +162,7 @@ class BodyOnlyPerception(CylinderPerception):
         inside = self.body.contains(centres.reshape(-1, 3)).reshape(centres.shape[:-1])
         return ShapeEstimate(self.grid, np.where(inside, 0.9, 0.02).astype(np.float32))
 
-    def select(self, estimate, request, outcomes, allowed, feasible=None):  # type: ignore[no-untyped-def]
+    def select(self, estimate, request, outcomes, allowed, feasible=None, robot_seconds=None):  # type: ignore[no-untyped-def]
         from controller.perception.protocol import TouchTarget
 
         for point, direction in self.targets[len(outcomes) :]:

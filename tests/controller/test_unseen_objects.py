@@ -39,7 +39,7 @@ class HalfSizePerception(CylinderPerception):
         inside = (np.linalg.norm(centres[..., :2], axis=-1) <= radius) & (centres[..., 2] <= height)
         return ShapeEstimate(self.grid, np.where(inside, 0.9, 0.02).astype(np.float32))
 
-    def select(self, estimate, request, outcomes, allowed, feasible=None):  # type: ignore[no-untyped-def]
+    def select(self, estimate, request, outcomes, allowed, feasible=None, robot_seconds=None):  # type: ignore[no-untyped-def]
         """Side touches just below the estimate's top, around its axis (the gripper body, a
         finger's length above the pad, must pass above the true object)."""
         occupied = estimate.occupied_points_world()

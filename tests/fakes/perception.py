@@ -56,6 +56,7 @@ class CylinderPerception:
         outcomes: list[TouchOutcome],
         allowed: Callable[[TouchTarget], bool],
         feasible: object = None,
+        robot_seconds: object = None,
     ) -> TouchTarget | None:
         occupied = estimate.occupied_points_world()
         radius = np.max(np.linalg.norm(occupied[:, :2], axis=1))

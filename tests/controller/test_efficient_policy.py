@@ -1,0 +1,155 @@
+"""The efficient policy (most expected uncertainty reduction per robot-second) and the robot
+time it weighs: the planner's seconds for a touch, and the bench's planned arm."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from controller.benchmarks.explore_summary import robot_seconds_curve
+from controller.benchmarks.robot_time import PlannedArm
+from controller.config import Config
+from controller.motion.lines import duration_s
+from controller.motion.planner import MotionPlanner, home_pose_world_tcp
+from controller.motion.safety import Obstacles
+from controller.perception.learned import EFFICIENT_CANDIDATES, LearnedPerception
+from controller.perception.protocol import ShapeEstimate, TouchTarget
+from controller.request import ExploreRequest
+from drivers.tool import ToolModel
+from models.geometry import ur_pose_to_matrix
+
+SIDE_TARGET = TouchTarget(np.array([0.0, -0.04, 0.05]), np.array([0.0, 1.0, 0.0]))
+FAR_SIDE_TARGET = TouchTarget(np.array([0.0, 0.04, 0.05]), np.array([0.0, -1.0, 0.0]))
+UNDER_THE_TABLE = TouchTarget(np.array([0.0, -0.04, -0.02]), np.array([0.0, 1.0, 0.0]))
+
+
+def planner_and_home(config: Config) -> tuple[MotionPlanner, np.ndarray, np.ndarray]:
+    tool = ToolModel(config.gripper, config.sensor)
+    base = ur_pose_to_matrix(config.robot.arm.pose_world_base)
+    joints = np.asarray(config.robot.arm.home_joints_rad, dtype=float)
+    return (
+        MotionPlanner.for_config(config, tool, base),
+        home_pose_world_tcp(config.robot.arm),
+        joints,
+    )
+
+
+def test_a_touchs_seconds_add_up_its_planned_motions_and_the_press() -> None:
+    config = Config()
+    planner, pose, joints = planner_and_home(config)
+    plan = planner.plan_touch(
+        pose, joints, SIDE_TARGET.target_world, SIDE_TARGET.direction_world, Obstacles.none()
+    )
+    moves, at, at_joints = 0.0, pose, joints
+    for move in (*plan.transit, plan.approach):
+        moves += duration_s(at, at_joints, move)
+        at, at_joints = move.pose_world_tcp, move.joints_rad
+    motion = config.motion
+    press = 2 * motion.standoff_m / (motion.finger_speed_m_s / 2)
+    retract = np.linalg.norm(plan.touch.pad_start_world - plan.touch.target_world)
+    expected = moves + press + retract / config.limits.max_tcp_speed_m_s
+    assert planner.touch_seconds(plan, pose, joints) == pytest.approx(expected)
+    assert plan.transit and moves > 0
+    seconds = planner.seconds_to_touch(
+        pose, joints, Obstacles.none(), [], SIDE_TARGET.target_world, SIDE_TARGET.direction_world
+    )
+    assert seconds == pytest.approx(expected)
+    # Refused: no time.
+    assert (
+        planner.seconds_to_touch(
+            pose,
+            joints,
+            Obstacles.none(),
+            [],
+            UNDER_THE_TABLE.target_world,
+            UNDER_THE_TABLE.direction_world,
+        )
+        is None
+    )
+
+
+def test_the_planned_arm_pays_the_transit_once() -> None:
+    """A bench run's arm: after a touch it waits at that touch's approach start, so touching
+    there again costs no transit, and the far side of the object costs more."""
+    config = Config()
+    tool = ToolModel(config.gripper, config.sensor)
+    arm = PlannedArm(config, tool, ur_pose_to_matrix(config.robot.arm.pose_world_base))
+    grid = config.voxel_grid.grid(tuple(config.cameras.rgbd.pose_world_camera()[:3, 3]))
+    empty = ShapeEstimate(grid, np.zeros((grid.resolution,) * 3, np.float32))
+    arm.set_estimate(empty)
+    first = arm.touch(SIDE_TARGET)
+    assert first is not None
+    start = arm.planner.touch_geometry(
+        SIDE_TARGET.target_world, SIDE_TARGET.direction_world
+    ).pose_world_tcp_start
+    assert np.allclose(arm.pose_world_tcp, start)
+    again, far = arm.seconds(SIDE_TARGET), arm.seconds(FAR_SIDE_TARGET)
+    assert again is not None and far is not None
+    assert again < first and again < far
+    assert not arm.allowed(UNDER_THE_TABLE) and arm.touch(UNDER_THE_TABLE) is None
+    assert np.allclose(arm.pose_world_tcp, start)  # a refused touch does not move it
+
+
+def test_robot_seconds_curve_is_the_running_sum() -> None:
+    result = {"chamfer_mm": [5.0, 4.0, 3.0, 3.0], "robot_s": [8.0, 2.0]}
+    assert robot_seconds_curve(result) == [0.0, 8.0, 10.0, None]
+    assert robot_seconds_curve({"chamfer_mm": [5.0, 4.0], "robot_s": [None]}) == [None, None]
+
+
+def sphere_with_uncertain_patches(config: Config) -> ShapeEstimate:
+    """A 4 cm ball on the table, confident everywhere but two side patches: a very uncertain
+    one facing -y and a less uncertain one facing +y."""
+    grid = config.voxel_grid.grid(tuple(config.cameras.rgbd.pose_world_camera()[:3, 3]))
+    centres = grid.voxel_centres_world()
+    centre = np.array([0.0, 0.0, 0.05])
+    distance = np.linalg.norm(centres - centre, axis=-1)
+    probabilities = np.where(distance <= 0.04, 0.95, 0.02).astype(np.float32)
+    shell = np.abs(distance - 0.04) < 0.012
+    height = np.abs(centres[..., 2] - centre[2]) < 0.012
+    along_x = np.abs(centres[..., 0]) < 0.012
+    probabilities[shell & height & along_x & (centres[..., 1] < 0)] = 0.5
+    probabilities[shell & height & along_x & (centres[..., 1] > 0)] = 0.35
+    return ShapeEstimate(grid, probabilities)
+
+
+def test_the_efficient_policy_trades_uncertainty_for_robot_time() -> None:
+    config = Config()
+    perception = LearnedPerception(
+        config,
+        camera_position_world=config.cameras.rgbd.pose_world_camera()[:3, 3],
+        calibration=None,  # type: ignore[arg-type]  # select reads no GelSight
+    )
+    estimate = sphere_with_uncertain_patches(config)
+
+    def select(policy: str, seconds: object) -> TouchTarget:
+        request = ExploreRequest(policy=policy)  # type: ignore[arg-type]
+        chosen = perception.select(estimate, request, [], lambda t: True, robot_seconds=seconds)
+        assert chosen is not None
+        return chosen
+
+    def cost(target: TouchTarget) -> float:
+        """The most uncertain window is far away (the first timed), every other near."""
+        return 100.0 if np.allclose(target.target_world, timed[0].target_world) else 10.0
+
+    def far_first(target: TouchTarget) -> float:
+        timed.append(target)
+        return cost(target)
+
+    timed: list[TouchTarget] = []
+    active = select("active", far_first)
+    assert not timed  # the paper's policy times nothing
+    efficient = select("efficient", far_first)
+    assert len(timed) == EFFICIENT_CANDIDATES
+    assert np.allclose(timed[0].target_world, active.target_world)
+    rates = [t.uncertainty / cost(t) for t in timed]
+    assert efficient is timed[int(np.argmax(rates))]
+    assert efficient is not timed[0]  # the far window is not worth its time
+    # Time the same everywhere: the most uncertain window, as the paper's policy.
+    same = select("efficient", lambda target: 10.0)
+    assert np.allclose(same.target_world, active.target_world)
+
+    # A target the planner refuses is never taken.
+    def only_the_cheap_one(target: TouchTarget) -> float | None:
+        return 1.0 if np.allclose(target.target_world, efficient.target_world) else None
+
+    assert np.allclose(select("efficient", only_the_cheap_one).target_world, efficient.target_world)
