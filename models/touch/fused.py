@@ -363,7 +363,7 @@ def fit_correction(
     touch_anchors = surface[thin_to_lattice(surface, spacing)]
     seen_anchors = seen[thin_to_lattice(seen, 3 * spacing)]
     mirrored_anchors = mirrored[thin_to_lattice(mirrored, 3 * spacing)]
-    variance = _VarianceAnchors(
+    variance = _VarianceAnchors.factored(
         np.concatenate([touch_anchors, seen_anchors, mirrored_anchors]),
         np.concatenate(
             [
@@ -372,6 +372,7 @@ def fit_correction(
                 np.full(len(mirrored_anchors), settings.symmetry_noise_m),
             ]
         ),
+        settings,
     )
     residuals = targets - prior(points) if len(points) else targets
     correction = _correction(points, residuals, noise, variance, settings)
@@ -398,8 +399,21 @@ def fit_correction(
 
 @dataclass(frozen=True)
 class _VarianceAnchors:
+    """The points the standard deviation conditions on, with their kernel matrix's Cholesky
+    factor: the same for every round of free points, so factored once."""
+
     points_world: FloatArray
-    noise_m: FloatArray
+    cholesky: FloatArray
+
+    @classmethod
+    def factored(
+        cls, points_world: FloatArray, noise_m: FloatArray, settings: FusionSettings
+    ) -> _VarianceAnchors:
+        gram = settings.prior_std_m**2 * _cross_kernel(
+            points_world, points_world, settings.support_m
+        )
+        gram[np.diag_indices_from(gram)] += noise_m**2
+        return cls(points_world, np.linalg.cholesky(gram) if len(gram) else np.zeros((0, 0)))
 
 
 def _correction(
@@ -414,12 +428,7 @@ def _correction(
             np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 0)), settings, np.zeros(0)
         )
     alpha = _solve(points, residuals, noise, settings)
-    gram = settings.prior_std_m**2 * _cross_kernel(
-        anchors.points_world, anchors.points_world, settings.support_m
-    )
-    gram[np.diag_indices_from(gram)] += anchors.noise_m**2
-    cholesky = np.linalg.cholesky(gram) if len(gram) else np.zeros((0, 0))
-    return Correction(points, alpha, anchors.points_world, cholesky, settings, residuals)
+    return Correction(points, alpha, anchors.points_world, anchors.cholesky, settings, residuals)
 
 
 # --- the fused shape ------------------------------------------------------------------------------
