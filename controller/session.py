@@ -23,12 +23,8 @@ import numpy as np
 
 from controller.config import Config
 from controller.motion.executor import HomeError, MotionExecutor, UnexpectedForceError
-from controller.motion.planner import (
-    MotionPlanner,
-    TouchGeometry,
-    home_pose_world_tcp,
-    rolls_preferring,
-)
+from controller.motion.planner import MotionPlanner, TouchGeometry
+from controller.motion.poses import home_pose_world_tcp, rolls_preferring
 from controller.motion.safety import POSSIBLE_OCCUPANCY, Obstacles, SafetyViolation
 from controller.perception.protocol import (
     Perception,

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.config import Config
-from controller.motion.planner import TOUCH_ROLLS_RAD, pad_pose_facing, tcp_pose_for_pad
+from controller.motion.poses import TOUCH_ROLLS_RAD, pad_pose_facing, tcp_pose_for_pad
 from controller.perception.protocol import TouchOutcome, TouchTarget
 from drivers.tool import ToolModel
 from models.geometry import invert_transform

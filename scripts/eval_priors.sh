@@ -7,7 +7,7 @@
 # scripts/summarise_prior_eval.py. Run from the repository root:
 #   nohup scripts/eval_priors.sh > logs/eval_priors.log 2>&1 &
 #   INPUT=rgbd nohup scripts/eval_priors.sh > logs/eval_priors_rgbd.log 2>&1 &
-# INPUT, PRIORS, VIEWS, SHAPES, WEIGHTS_DIR and OUT may be set in the environment.
+# INPUT, PRIORS, VIEWS, SHAPES, WEIGHTS_DIR, PRESET and OUT may be set in the environment.
 set -euo pipefail
 TS=".venv/bin/touchshape"
 INPUT=${INPUT:-rgb}
@@ -17,6 +17,7 @@ SHAPES=${SHAPES:-3}
 PRIORS=${PRIORS:-"general box object_frame auto"}
 WEIGHTS=()
 if [[ -n "${WEIGHTS_DIR:-}" ]]; then WEIGHTS=(--weights-dir "$WEIGHTS_DIR"); fi
+if [[ -n "${PRESET:-}" ]]; then WEIGHTS+=(--preset "$PRESET"); fi
 export OMP_NUM_THREADS=1
 mkdir -p "$OUT"
 

@@ -47,7 +47,7 @@ import trimesh
 from controller.benchmarks.explore import ExploreSettings, ObjectRun, with_threads
 from controller.benchmarks.explore_summary import change_pct
 from controller.config import Config
-from controller.motion.planner import pad_pose_facing
+from controller.motion.poses import pad_pose_facing
 from controller.perception.learned import LearnedPerception
 from controller.perception.protocol import ShapeEstimate
 from models.prior.evaluation import EvalObject

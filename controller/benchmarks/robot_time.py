@@ -14,7 +14,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.config import Config
-from controller.motion.planner import MotionPlanner, TouchPlan, home_pose_world_tcp
+from controller.motion.planner import MotionPlanner, TouchPlan
+from controller.motion.poses import home_pose_world_tcp
 from controller.motion.safety import Obstacles, SafetyViolation
 from controller.perception.protocol import ShapeEstimate, TouchTarget
 from drivers.tool import ToolModel

@@ -11,7 +11,7 @@ import numpy as np
 
 from controller.benchmarks.timing import Stopwatch, machine, repeated
 from controller.config import Config
-from controller.motion.planner import pad_pose_facing
+from controller.motion.poses import pad_pose_facing
 from drivers.sim.gelsight import gel_pad_spec
 from drivers.sim.world import SimWorld
 from models.camera import CameraIntrinsics

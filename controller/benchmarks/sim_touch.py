@@ -17,7 +17,7 @@ import trimesh
 from numpy.typing import NDArray
 
 from controller.config import Config
-from controller.motion.planner import pad_pose_facing, tcp_pose_for_pad
+from controller.motion.poses import pad_pose_facing, tcp_pose_for_pad
 from controller.perception.protocol import TouchMeasurement, TouchTarget
 from drivers.base import RGBDFrame, TactileFrame
 from drivers.sim.camera import SimKinect

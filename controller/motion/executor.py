@@ -18,7 +18,8 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import numpy as np
 
 from controller.config import Config
-from controller.motion.planner import MotionPlanner, Waypoint, at_pose
+from controller.motion.planner import MotionPlanner, Waypoint
+from controller.motion.poses import at_pose
 from controller.motion.safety import Obstacles, SafetyViolation
 from controller.recording import SessionRecorder
 from controller.session_times import SessionTimes

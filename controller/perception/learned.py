@@ -58,12 +58,7 @@ from models.touch.constraints import (
     free_pad_points,
     pad_grid_world,
 )
-from models.touch.fused import (
-    FusedShape,
-    FusionSettings,
-    Pose,
-    SignedDistanceGrid,
-)
+from models.touch.fused import FusedShape, FusionSettings
 from models.touch.global_fit import GlobalSettings, GlobalState, ShapeMean, global_step
 from models.touch.observations import SurfaceObservations, observations_of
 from models.touch.policy import (
@@ -76,6 +71,7 @@ from models.touch.policy import (
     random_touch,
     touch_candidates,
 )
+from models.touch.posed_prior import Pose, SignedDistanceGrid
 from models.touch.refinement import Decode, RefinementResult, direct_edit, refine_latent
 from models.vision import VisionSettings, estimate_from_frame
 

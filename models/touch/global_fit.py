@@ -36,8 +36,8 @@ from numpy.typing import NDArray
 
 from models.geometry import VoxelGrid
 from models.touch.constraints import TouchResult, VoxelConstraints, constraints_from_touches
-from models.touch.fused import Pose, SignedDistanceGrid, fit_pose, posed_grid
 from models.touch.observations import SurfaceObservations, observations_of
+from models.touch.posed_prior import Pose, SignedDistanceGrid, fit_pose, posed_grid
 from models.touch.refinement import Decode, refine_latent
 
 CAMERA_SOURCE = -1

@@ -10,7 +10,8 @@ from controller.benchmarks.explore_summary import robot_seconds_curve
 from controller.benchmarks.robot_time import PlannedArm
 from controller.config import Config
 from controller.motion.lines import duration_s
-from controller.motion.planner import MotionPlanner, home_pose_world_tcp
+from controller.motion.planner import MotionPlanner
+from controller.motion.poses import home_pose_world_tcp
 from controller.motion.safety import Obstacles
 from controller.perception.learned import EFFICIENT_CANDIDATES, LearnedPerception
 from controller.perception.protocol import ShapeEstimate, TouchTarget

@@ -19,14 +19,8 @@ from controller.motion.lines import (
     duration_s,
     tool_reach_along,
 )
-from controller.motion.planner import (
-    APPROACH_EXEMPT_PARTS,
-    APPROACH_NEAR_PARTS,
-    TOUCH_ROLLS_RAD,
-    MotionPlanner,
-    at_pose,
-    home_pose_world_tcp,
-)
+from controller.motion.planner import APPROACH_EXEMPT_PARTS, APPROACH_NEAR_PARTS, MotionPlanner
+from controller.motion.poses import TOUCH_ROLLS_RAD, at_pose, home_pose_world_tcp
 from controller.motion.safety import (
     Obstacles,
     SafetyViolation,

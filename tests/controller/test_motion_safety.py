@@ -8,7 +8,8 @@ import pytest
 import trimesh
 
 from controller.config import Config, LimitsConfig
-from controller.motion.planner import MotionPlanner, at_pose, home_pose_world_tcp
+from controller.motion.planner import MotionPlanner
+from controller.motion.poses import at_pose, home_pose_world_tcp
 from controller.motion.safety import (
     Obstacles,
     SafetyViolation,

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from controller.config import Config
-from controller.motion.planner import home_pose_world_tcp
+from controller.motion.poses import home_pose_world_tcp
 from controller.perception.protocol import ShapeEstimate
 from controller.request import ExploreRequest
 from controller.service import TouchshapeService

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from controller.config import Config
-from controller.motion.planner import (
+from controller.motion.poses import (
     TOUCH_ROLLS_RAD,
     pad_pose_facing,
     rolls_preferring,

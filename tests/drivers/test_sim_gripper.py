@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from controller.motion.planner import pad_pose_facing, tcp_pose_for_pad
+from controller.motion.poses import pad_pose_facing, tcp_pose_for_pad
 from drivers.base import DeviceNotConnectedError, MotionRejectedError
 from drivers.config import ArmConfig, GripperConfig, SensorConfig, SimConfig
 from drivers.sim.gelsight import gel_pad_spec

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from controller.config import Config
-from controller.motion.planner import pad_pose_facing, tcp_pose_for_pad
+from controller.motion.poses import pad_pose_facing, tcp_pose_for_pad
 from drivers.factory import Devices, make_devices
 from drivers.ur5.kinematics import forward_kinematics
 from models.geometry import invert_transform, matrix_to_ur_pose, ur_pose_to_matrix

@@ -9,14 +9,9 @@ import pytest
 from models.geometry import VoxelGrid
 from models.metrics import distance_to_mesh
 from models.touch.constraints import TouchResult
-from models.touch.fused import (
-    FusedShape,
-    FusionSettings,
-    SignedDistanceGrid,
-    fit_pose,
-    posed_grid,
-)
+from models.touch.fused import FusedShape, FusionSettings
 from models.touch.observations import ObservationsError, SurfaceObservations
+from models.touch.posed_prior import SignedDistanceGrid, fit_pose, posed_grid
 
 GRID = VoxelGrid(64, 0.26, (0.0, 0.0, 0.0))
 HALF = np.array([0.04, 0.03, 0.05])  # a rounded box 8 x 6 x 10 cm

@@ -15,7 +15,6 @@ from models.geometry import VoxelGrid
 from models.prior.shape_prior import ShapePrior
 from models.procedural import make_shape
 from models.touch.constraints import TouchResult
-from models.touch.fused import Pose, posed_grid
 from models.touch.global_fit import (
     GlobalSettings,
     GlobalState,
@@ -25,6 +24,7 @@ from models.touch.global_fit import (
     seen_empty_fraction,
 )
 from models.touch.observations import SurfaceObservations, observations_of
+from models.touch.posed_prior import Pose, posed_grid
 from tests.models.test_vision import FULL, GRID, POSE, _frame
 
 PAD_SIZE_M = (0.019, 0.014)
