@@ -58,6 +58,7 @@ from controller.targets import (
     pad_path_m,
     pad_paths_meet,
     repeat_reason,
+    rolls_avoiding_rim_stops,
     skip_record,
     window_leading_roll,
 )
@@ -343,7 +344,9 @@ class ExplorationSession:
 
     def _window_leading_roll(self, target: TouchTarget, estimate: ShapeEstimate) -> float:
         occupied = estimate.occupied_points_world()
-        return window_leading_roll(target, occupied, self.tool, self.config.motion.touch_width_m)
+        rolls = rolls_avoiding_rim_stops(target, self.outcomes)
+        width = self.config.motion.touch_width_m
+        return window_leading_roll(target, occupied, self.tool, width, rolls)
 
     def _stop(self, reason: str) -> State:
         log.info("session %s stops: %s", self.session_id, reason)

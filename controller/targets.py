@@ -108,20 +108,59 @@ def repeat_reason(
 ) -> str | None:
     """Why a target repeats an earlier one (near a refused target, or a near repeat of a touch
     that met nothing), or None."""
-    point, direction = target.target_world, target.direction_world
+    point = target.target_world
     if any(np.linalg.norm(point - r) < REJECTED_TARGET_RADIUS_M for r in rejected_world):
         return "near a target whose motions were refused"
     for outcome in outcomes:
-        if outcome.measurement.contact:
-            continue
-        missed = outcome.measurement.target
-        along = missed.direction_world / np.linalg.norm(missed.direction_world)
-        offset = point - missed.target_world
-        lateral = np.linalg.norm(offset - (offset @ along) * along)
-        cosine = direction @ along / np.linalg.norm(direction)
-        if lateral < MISSED_LINE_RADIUS_M and cosine > np.cos(np.radians(MISSED_LINE_ANGLE_DEG)):
+        if not outcome.measurement.contact and _on_the_line_of(target, outcome.measurement.target):
             return "a near repeat of a touch that met nothing"
     return None
+
+
+def rolls_avoiding_rim_stops(
+    target: TouchTarget,
+    outcomes: Sequence[TouchOutcome],
+    rolls_rad: Sequence[float] = TOUCH_ROLLS_RAD,
+) -> tuple[float, ...]:
+    """``rolls_rad`` without the rolls at which a touch along nearly the same line stopped by
+    force with no imprint (a rigid part met the object before the gel): tried again there at
+    that roll, the tool would meet it the same way. All of them when every one has failed."""
+    failed = [
+        _roll_of(outcome.measurement.pose_world_pad, outcome.measurement.target, rolls_rad)
+        for outcome in outcomes
+        if outcome.measurement.contact
+        and len(outcome.contact_points_world) == 0
+        and _on_the_line_of(target, outcome.measurement.target)
+    ]
+    left = tuple(r for r in rolls_rad if all(abs(r - f) > 1e-9 for f in failed))
+    return left or tuple(rolls_rad)
+
+
+def _on_the_line_of(target: TouchTarget, earlier: TouchTarget) -> bool:
+    """Whether ``target`` lies within ``MISSED_LINE_RADIUS_M`` of an earlier touch's approach
+    line and is approached within ``MISSED_LINE_ANGLE_DEG`` of its direction."""
+    along = earlier.direction_world / np.linalg.norm(earlier.direction_world)
+    offset = target.target_world - earlier.target_world
+    lateral = np.linalg.norm(offset - (offset @ along) * along)
+    cosine = target.direction_world @ along / np.linalg.norm(target.direction_world)
+    return bool(
+        lateral < MISSED_LINE_RADIUS_M and cosine > np.cos(np.radians(MISSED_LINE_ANGLE_DEG))
+    )
+
+
+def _roll_of(
+    pose_world_pad: NDArray[np.float64], target: TouchTarget, rolls_rad: Sequence[float]
+) -> float:
+    """Which of ``rolls_rad`` the pad was turned by (the planner may have taken another than
+    the target's preferred roll): the one whose pad axes lie closest to the measured pose's."""
+    direction = target.direction_world / np.linalg.norm(target.direction_world)
+    rotation = np.asarray(pose_world_pad)[:3, :3]
+
+    def misfit(roll: float) -> float:
+        planned = pad_pose_facing(target.target_world, -direction, 0.0, roll)[:3, :3]
+        return float(np.linalg.norm(planned - rotation))
+
+    return float(min(rolls_rad, key=misfit))
 
 
 def window_leading_roll(

@@ -27,7 +27,7 @@ from controller.config import Config
 from controller.perception.learned import FUSED_UPDATES, LearnedPerception
 from controller.perception.protocol import ShapeEstimate, TouchOutcome, TouchTarget
 from controller.request import ExploreRequest
-from controller.targets import window_leading_roll
+from controller.targets import rolls_avoiding_rim_stops, window_leading_roll
 from models.geometry import make_transform, rotation_about_axis
 from models.metrics import (
     SURFACE_SAMPLES,
@@ -342,7 +342,8 @@ def _explore(run: ObjectRun, method: str, run_index: int, tick: Callable[[], Non
             if target is not None:  # as a session does (the bench's tool placed by the pad)
                 occupied = estimate.occupied_points_world()
                 tool = run.bench.world.tool
-                roll = window_leading_roll(target, occupied, tool, TOUCH_START_WIDTH_M)
+                rolls = rolls_avoiding_rim_stops(target, outcomes)
+                roll = window_leading_roll(target, occupied, tool, TOUCH_START_WIDTH_M, rolls)
                 target = replace(target, roll_rad=roll)
             chosen = None if target is None else trial(target)
         select_s = sum(select.wall_s) - sum(checks.wall_s)

@@ -3,6 +3,8 @@ never along a path that cannot meet the object, never a near repeat of a miss.""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from controller.config import Config
@@ -13,7 +15,13 @@ from controller.motion.poses import (
     tcp_pose_for_pad,
 )
 from controller.perception.protocol import TouchMeasurement, TouchOutcome, TouchTarget
-from controller.targets import onto_measured, pad_paths_meet, repeat_reason, window_leading_roll
+from controller.targets import (
+    onto_measured,
+    pad_paths_meet,
+    repeat_reason,
+    rolls_avoiding_rim_stops,
+    window_leading_roll,
+)
 from drivers.base import TactileFrame
 from drivers.tool import ToolModel
 from models.object_bound import ObjectBound
@@ -109,3 +117,33 @@ def test_the_roll_keeps_the_housing_off_what_the_estimate_puts_beside_the_target
     assert roll != 0.0
     assert rolls_preferring(roll)[0] == roll
     assert sorted(rolls_preferring(roll)) == sorted(TOUCH_ROLLS_RAD)
+
+
+def test_a_touch_that_stopped_on_the_rim_is_not_repeated_at_its_roll() -> None:
+    """A contact without an imprint (a rigid part met the object before the gel): a target
+    along nearly the same line is tried at another roll, one elsewhere at any."""
+    frame = TactileFrame(np.zeros((2, 2, 3), np.uint8), 0.0)
+    stopped = _side_target()
+    roll = TOUCH_ROLLS_RAD[3]
+    pad = pad_pose_facing(stopped.target_world, -stopped.direction_world, 0.002, roll)
+    rim = TouchMeasurement(stopped, True, frame, frame, pad, np.zeros(3), 4.0)
+    outcomes = [TouchOutcome(rim, np.zeros((0, 3)), None, None)]
+    nearby = stopped.target_world + np.array([0.005, 0.0, 0.003])
+    again = TouchTarget(nearby, stopped.direction_world)
+    left = rolls_avoiding_rim_stops(again, outcomes)
+    assert roll not in left and sorted((*left, roll)) == sorted(TOUCH_ROLLS_RAD)
+    elsewhere = TouchTarget(np.array([0.0, 0.04, 0.06]), np.array([0.0, -1.0, 0.0]))
+    assert rolls_avoiding_rim_stops(elsewhere, outcomes) == TOUCH_ROLLS_RAD
+    # With an imprint the roll worked: nothing to avoid.
+    imprint = [TouchOutcome(rim, np.ones((5, 3)), None, None)]
+    assert rolls_avoiding_rim_stops(again, imprint) == TOUCH_ROLLS_RAD
+    # Every roll failed there: all are left (the choice falls back to the estimate's).
+    every = [
+        TouchOutcome(
+            replace(rim, pose_world_pad=pad_pose_facing(
+                stopped.target_world, -stopped.direction_world, 0.002, r)),
+            np.zeros((0, 3)), None, None,
+        )
+        for r in TOUCH_ROLLS_RAD
+    ]  # fmt: skip
+    assert rolls_avoiding_rim_stops(again, every) == TOUCH_ROLLS_RAD
