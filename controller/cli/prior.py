@@ -135,6 +135,12 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
                 default=0.5,
                 help="fraction of samples with simulated Kinect depth",
             )
+            parser.add_argument(
+                "--sensor-normals",
+                action="store_true",
+                help="samples with Kinect depth also take its normals where known (as RGB-D "
+                "inference does)",
+            )
         parser.set_defaults(handler=train_network, stage=stage)
 
     calibrate = train_commands.add_parser(
@@ -279,6 +285,7 @@ def train_network(args: argparse.Namespace) -> int:
         sketch_weights=getattr(args, "sketch_weights", None),
         positive_weight=getattr(args, "positive_weight", 1.0),
         sensor_depth_prob=getattr(args, "sensor_depth_prob", 0.5),
+        sensor_normals=getattr(args, "sensor_normals", False),
         predicted_sketch_prob=getattr(args, "predicted_sketch_prob", 0.0),
         augment=not args.no_augment,
         threads=args.threads,

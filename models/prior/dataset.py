@@ -39,7 +39,7 @@ from models.families import FAMILIES, SHAPE_GROUPS, SIZE_RANGE_M, make_family_sh
 from models.files import write_atomically, write_json_atomically
 from models.geometry import VoxelGrid, axes_facing_camera, make_transform, rotation_about_axis
 from models.prior.frame import FrameError, fit_object_grid, search_grid
-from models.prior.virtual_camera import GridCrop, grid_crop
+from models.prior.virtual_camera import GridCrop, grid_crop, sensor_normals_camera
 from models.procedural import CATEGORIES, procedural_shape
 from models.render import (
     Lighting,
@@ -444,12 +444,16 @@ class SketchVoxelDataset(torch.utils.data.Dataset):
 
     Items are dicts of tensors: ``rgb`` uint8 (3, S, S); ``nearness``, ``sensor_nearness``,
     ``silhouette`` float (1, S, S); ``normals`` float (3, S, S); ``voxels`` float (N, N, N);
-    ``category`` int (index into :attr:`categories`). With ``search_crops`` (for the sketch
+    ``category`` int (index into :attr:`categories`); ``sensor_normals`` float (3, S, S), the
+    normals of the sensor depth as RGB-D inference takes them (0 where unknown; object-frame
+    data only, zeros otherwise). With ``search_crops`` (for the sketch
     net), the views' search crops follow as further items: the crops in which the object-fitted
     frame looks for the object, with sketches but no voxels (zeros) and no sensor depth.
     """
 
     _VIEW_KEYS = ("rgb", "nearness", "sensor_nearness", "normals", "silhouette", "voxels")
+    _CROP_KEYS = ("pose_world_camera", "grid_origin_world", "grid_extent_m")
+    """Where each view's crop was: enough to rebuild its virtual camera (the sensor normals)."""
     _SEARCH_KEYS = ("search_rgb", "search_nearness", "search_normals", "search_silhouette")
 
     def __init__(
@@ -471,12 +475,15 @@ class SketchVoxelDataset(torch.utils.data.Dataset):
         if len(sizes) > 1 or len(frames) > 1:
             raise ValueError(f"{', '.join(map(str, folders))}: datasets of different recipes")
         (self.image_size, self.voxel_resolution), frame = sizes.pop(), frames.pop()
+        self.recipe = ViewRecipe(
+            **{k: tuple(v) if isinstance(v, list) else v for k, v in recipes[0].items()}
+        )
         self.categories: list[str] = list(
             dict.fromkeys(c for manifest in manifests for c in manifest["categories"])
         )
         if search_crops and frame != "object":
             raise ValueError(f"{folders[0]} has no search crops (its views use the fixed frame)")
-        keys = self._VIEW_KEYS + (self._SEARCH_KEYS if search_crops else ())
+        keys = self._VIEW_KEYS + self._CROP_KEYS + (self._SEARCH_KEYS if search_crops else ())
         parts: dict[str, list[np.ndarray]] = {}
         for source, (folder, manifest) in enumerate(zip(folders, manifests, strict=True)):
             files = [s["file"] for s in manifest["shards"]] if shards is None else list(shards)
@@ -504,14 +511,20 @@ class SketchVoxelDataset(torch.utils.data.Dataset):
         prefix = "search_" if search else ""
         silhouette = np.unpackbits(a[prefix + "silhouette"][view])[: size * size]
         nearness = torch.from_numpy(a[prefix + "nearness"][view].astype(np.float32))[None]
+        sensor_normals = torch.zeros((3, size, size))
         if search:
             sensor_nearness = torch.zeros_like(nearness)
             voxels = torch.zeros((n, n, n))
         else:
-            sensor_nearness = torch.from_numpy(a["sensor_nearness"][view].astype(np.float32))[None]
+            sensor = a["sensor_nearness"][view].astype(np.float32)
+            sensor_nearness = torch.from_numpy(sensor)[None]
             voxels = torch.from_numpy(
                 np.unpackbits(a["voxels"][view])[: n**3].reshape(n, n, n).astype(np.float32)
             )
+            if self.recipe.frame == "object":
+                crop = self._crop(view)
+                normals, _ = sensor_normals_camera(crop.depth_m(sensor), crop)
+                sensor_normals = torch.from_numpy(normals).permute(2, 0, 1)
         return {
             "rgb": torch.from_numpy(a[prefix + "rgb"][view]).permute(2, 0, 1).contiguous(),
             "nearness": nearness,
@@ -522,7 +535,20 @@ class SketchVoxelDataset(torch.utils.data.Dataset):
             "silhouette": torch.from_numpy(silhouette.reshape(1, size, size).astype(np.float32)),
             "voxels": voxels,
             "category": torch.tensor(int(a["category"][view])),
+            "sensor_normals": sensor_normals,
         }
+
+    def _crop(self, view: int) -> GridCrop:
+        """A view's virtual camera: its object-fitted grid faces the camera (``_axes``)."""
+        pose = self.arrays["pose_world_camera"][view].astype(np.float64)
+        origin = self.arrays["grid_origin_world"][view].astype(np.float64)
+        grid = VoxelGrid(
+            self.voxel_resolution,
+            float(self.arrays["grid_extent_m"][view]),
+            tuple(float(v) for v in origin),
+            _axes(pose),
+        )
+        return view_crop(self.recipe, pose, grid)
 
     def shape_names(self) -> np.ndarray:
         """Name of the shape of each item (views of one shape, and their search crops, share

@@ -42,7 +42,7 @@ from models.prior.networks import (
     normalise_rgb,
     shape_input,
 )
-from models.prior.virtual_camera import GridCrop, crop_image, grid_crop
+from models.prior.virtual_camera import GridCrop, crop_image, grid_crop, sensor_normals_camera
 
 log = logging.getLogger(__name__)
 
@@ -261,7 +261,16 @@ class ShapePrior:
             sensor_t = torch.from_numpy(crop.nearness(sensor_m))[None, None].to(self.device)
             depth = torch.where(sensor_t > 0, sensor_t, depth)
         seen = seen_silhouette(seen, sensor_m, crop.intrinsics, pose_world_camera, grid)
-        latent = self.shape_net.encode(shape_input(depth, sketches["normals"], mask))
+        normals = sketches["normals"]
+        if sensor_m is not None:
+            # What the sensor measured replaces what the sketch net guessed: the object's
+            # outline in depth and the normals of its depth where known (docs/prior.md).
+            mask = torch.from_numpy(seen.astype(np.float32))[None, None].to(self.device)
+            measured, known = sensor_normals_camera(sensor_m, crop)
+            measured_t = torch.from_numpy(measured).permute(2, 0, 1)[None].to(self.device)
+            known_t = torch.from_numpy(known)[None, None].to(self.device)
+            normals = torch.where(known_t, measured_t, normals)
+        latent = self.shape_net.encode(shape_input(depth, normals, mask))
         probabilities = self.shape_net.decode(latent)[0].cpu().numpy()
         seen_empty = seen_empty_voxels(grid, crop, pose_world_camera, seen, sensor_m)
         near = (depth * mask)[0, 0].cpu().numpy()
@@ -269,7 +278,7 @@ class ShapePrior:
             probabilities=carve(probabilities, seen_empty),
             latent=latent[0].cpu(),
             depth_m=crop.depth_m(near),
-            normals_camera=(sketches["normals"] * mask)[0].permute(1, 2, 0).cpu().numpy(),
+            normals_camera=(normals * mask)[0].permute(1, 2, 0).cpu().numpy(),
             silhouette=silhouette[0, 0].cpu().numpy(),
             crop=crop,
             grid=grid,

@@ -4,8 +4,9 @@
   silhouette probability, summed; colour and light jitter (kornia) on the RGB input.
 * Shape net: SGD (lr 2e-2, momentum 0.9), binary cross-entropy on the voxels, trained on
   ground-truth sketches (depth + normals masked by the silhouette). ``sensor_depth_prob`` of the
-  samples replace the depth by the simulated Kinect depth (holes filled from the clean depth), so
-  the RGB-D mode sees what it was trained on. Validation also runs on *predicted* sketches when a
+  samples replace the depth by the simulated Kinect depth (holes filled from the clean depth),
+  and with ``sensor_normals`` the normals by the sensor depth's where known, so the RGB-D mode
+  sees what it was trained on. Validation also runs on *predicted* sketches when a
   sketch checkpoint is given.
 
 Checkpoints (float16, ``models/prior/training_state.py``; ``checkpoint.pt`` in the run's folder
@@ -85,6 +86,9 @@ class TrainConfig:
     net predicts from the RGB, not the true ones: the shape net learns from what it will be
     given (0: the paper's, true sketches only)."""
     sensor_depth_prob: float = 0.5
+    sensor_normals: bool = False
+    """Shape stage: the samples with sensor depth also take its normals where they are known,
+    as RGB-D inference does (False: the true normals, as the committed weights were trained)."""
     positive_weight: float = 1.0
     """Shape stage: BCE weight of occupied voxels (1 = the paper's plain BCE)."""
     augment: bool = True
@@ -137,16 +141,39 @@ def ground_truth_shape_input(
     batch: dict[str, Tensor],
     sensor_depth_prob: float = 0.0,
     generator: torch.Generator | None = None,
+    sensor_normals: bool = False,
 ) -> Tensor:
-    """Shape-net input from ground-truth sketches; optionally sensor depth for some samples."""
-    depth = batch["nearness"]
+    """Shape-net input from ground-truth sketches; optionally sensor depth for some samples
+    (and, with ``sensor_normals``, the sensor depth's normals where they are known)."""
+    depth, normals = batch["nearness"], batch["normals"]
     if sensor_depth_prob > 0:
-        sensor = batch["sensor_nearness"]
-        filled = torch.where(sensor > 0, sensor, depth)
+        sensor_depth, sensor_normal = _sensor_sketch(batch, depth, normals)
+        if not sensor_normals:
+            sensor_normal = normals
         # Drawn on the CPU generator (bit-exact resume on any device), used where the batch is.
         use = torch.rand(depth.shape[0], 1, 1, 1, generator=generator) < sensor_depth_prob
-        depth = torch.where(use.to(depth.device), filled, depth)
-    return shape_input(depth, batch["normals"], batch["silhouette"])
+        use = use.to(depth.device)
+        depth = torch.where(use, sensor_depth, depth)
+        normals = torch.where(use, sensor_normal, normals)
+    return shape_input(depth, normals, batch["silhouette"])
+
+
+def sensor_shape_input(batch: dict[str, Tensor], prediction: dict[str, Tensor]) -> Tensor:
+    """Shape-net input as RGB-D inference makes it (``ShapePrior.predict`` with depth): the
+    sensor's depth and its normals where known, the predicted sketches elsewhere, inside the
+    true silhouette (inference sees the object's outline in the depth)."""
+    depth, normals = _sensor_sketch(batch, prediction["depth"], prediction["normals"])
+    return shape_input(depth, normals, batch["silhouette"])
+
+
+def _sensor_sketch(
+    batch: dict[str, Tensor], depth: Tensor, normals: Tensor
+) -> tuple[Tensor, Tensor]:
+    """The sensor's nearness and normals, ``depth`` and ``normals`` where it has none."""
+    sensor = batch["sensor_nearness"]
+    measured = batch["sensor_normals"]
+    known = measured.abs().sum(dim=1, keepdim=True) > 0
+    return torch.where(sensor > 0, sensor, depth), torch.where(known, measured, normals)
 
 
 def predicted_shape_input(
@@ -375,7 +402,9 @@ def train(config: TrainConfig, *, progress: bool = True) -> dict:
                 losses = sketch_loss(model(normalise_rgb(rgb)), batch)
                 loss = losses["total"]
             else:
-                inputs = ground_truth_shape_input(batch, config.sensor_depth_prob, sample_noise)
+                inputs = ground_truth_shape_input(
+                    batch, config.sensor_depth_prob, sample_noise, config.sensor_normals
+                )
                 if config.predicted_sketch_prob > 0:
                     assert sketch_net is not None
                     inputs = _mix_predicted_sketches(
@@ -464,6 +493,8 @@ def evaluate(
                 prediction = sketch_net(normalise_rgb(batch["rgb"]))
                 probs = torch.sigmoid(model(predicted_shape_input(prediction)))
                 values["val_iou_pred_sketch"] = float(voxel_iou(probs, batch["voxels"]))
+                probs = torch.sigmoid(model(sensor_shape_input(batch, prediction)))
+                values["val_iou_rgbd"] = float(voxel_iou(probs, batch["voxels"]))
         for key, value in values.items():
             totals[key] = totals.get(key, 0.0) + value * size
         count += size

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import torch.nn.functional as F
+from scipy import ndimage
 
 from models.camera import CameraIntrinsics
 from models.geometry import VoxelGrid, invert_transform, transform_points
@@ -133,3 +134,44 @@ def crop_image(image: np.ndarray, crop: GridCrop, *, nearest: bool = False) -> n
     if np.issubdtype(array.dtype, np.integer):
         result = np.clip(np.rint(result), np.iinfo(array.dtype).min, np.iinfo(array.dtype).max)
     return result.astype(array.dtype)
+
+
+SENSOR_NORMALS_SMOOTH_PX = 1.0
+"""Gaussian smoothing (crop pixels) of the sensor's depth before its normals are taken: a crop
+pixel spans ~2.5 mm, about the Kinect's noise, so unsmoothed normals would be mostly noise."""
+SENSOR_NORMALS_EDGE_BEND = 0.02
+"""A return further than this fraction of the grid's extent (5 mm of the 26 cm cube) from the
+line through its two neighbours (along a row or a column) sits on a depth edge (a rim, the
+object against the table), where a slope alone bends nothing: it is left out of the smoothing and
+gets no normal, so no normal mixes two surfaces."""
+_CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], dtype=bool)
+
+
+def sensor_normals_camera(depth_m: np.ndarray, crop: GridCrop) -> tuple[np.ndarray, np.ndarray]:
+    """Unit camera-frame normals (H, W, 3), turned toward the camera as the sketches' are, from
+    the crop's sensor depth (z metres, 0 = no return), and where they are known (H, W): away
+    from depth edges, with returns on all four sides."""
+    depth = np.asarray(depth_m, dtype=np.float64)
+    returned = depth > 0
+    padded_depth = np.pad(depth, 1)
+    bend_u = np.abs(padded_depth[1:-1, 2:] + padded_depth[1:-1, :-2] - 2.0 * depth)
+    bend_v = np.abs(padded_depth[2:, 1:-1] + padded_depth[:-2, 1:-1] - 2.0 * depth)
+    edge = np.maximum(bend_u, bend_v) > 2.0 * SENSOR_NORMALS_EDGE_BEND * crop.extent_m
+    smooth_support = returned & ~edge
+    # Normalised convolution over the support: holes and edges neither pull the depth nor spread.
+    weight = ndimage.gaussian_filter(smooth_support.astype(float), SENSOR_NORMALS_SMOOTH_PX)
+    total = ndimage.gaussian_filter(np.where(smooth_support, depth, 0.0), SENSOR_NORMALS_SMOOTH_PX)
+    smooth = np.where(smooth_support, total / np.maximum(weight, 1e-6), 0.0)
+    k = crop.intrinsics
+    v, u = np.mgrid[0 : depth.shape[0], 0 : depth.shape[1]].astype(float)
+    points = np.stack([(u - k.cx) / k.fx * smooth, (v - k.cy) / k.fy * smooth, smooth], axis=-1)
+    padded = np.pad(points, ((1, 1), (1, 1), (0, 0)))
+    along_u = padded[1:-1, 2:] - padded[1:-1, :-2]
+    along_v = padded[2:, 1:-1] - padded[:-2, 1:-1]
+    # x right, y down, z forward: u x v points away from the camera; v x u toward it.
+    normals = np.cross(along_v, along_u)
+    length = np.linalg.norm(normals, axis=-1)
+    known = ndimage.minimum_filter(smooth_support.astype(np.uint8), footprint=_CROSS) > 0
+    known &= length > 0
+    normals = np.where(known[..., None], normals / np.maximum(length, 1e-12)[..., None], 0.0)
+    return normals.astype(np.float32), known

@@ -22,6 +22,7 @@ from models.prior.training import (
     paper_optimizer,
     predicted_shape_input,
     save_weights,
+    sensor_shape_input,
     shape_loss,
     sketch_loss,
     train,
@@ -207,6 +208,35 @@ def test_predicted_sketches_replace_the_true_ones_for_their_fraction(tiny_data: 
     from_prediction = [torch.equal(half[i], predicted[i]) for i in range(len(half))]
     assert 0 < sum(from_prediction) < len(half)
     assert all(torch.equal(half[i], true_inputs[i]) for i, p in enumerate(from_prediction) if not p)
+
+
+def test_object_frame_views_carry_the_normals_of_their_sensor_depth(tiny_data: Path) -> None:
+    """The loader rebuilds each view's virtual camera and takes the normals of its simulated
+    Kinect depth as RGB-D inference does: they follow the true normals on the object."""
+    batch = _batch(tiny_data)
+    measured, true = batch["sensor_normals"], batch["normals"]
+    known = (measured.abs().sum(dim=1) > 0) & (batch["silhouette"][:, 0] > 0)
+    assert known.sum() > 0.1 * (batch["silhouette"] > 0).sum()  # 64 px crops: coarse pixels
+    cosine = (measured * true).sum(dim=1)[known]
+    assert float(torch.rad2deg(torch.arccos(cosine.clamp(-1, 1))).median()) < 15.0
+
+
+def test_sensor_samples_take_the_sensor_normals_where_known(tiny_data: Path) -> None:
+    batch = _batch(tiny_data)
+    generator = torch.Generator().manual_seed(0)
+    inputs = ground_truth_shape_input(batch, 1.0, generator, sensor_normals=True)
+    known = batch["sensor_normals"].abs().sum(dim=1, keepdim=True) > 0
+    silhouette = batch["silhouette"] > 0
+    expected = torch.where(known, batch["sensor_normals"], batch["normals"])
+    assert torch.equal(inputs[:, 1:] * silhouette, expected * silhouette)
+    assert not torch.equal(expected * silhouette, batch["normals"] * silhouette)
+    # Without the flag the normals stay the true ones (the committed weights' recipe).
+    plain = ground_truth_shape_input(batch, 1.0, torch.Generator().manual_seed(0))
+    assert torch.equal(plain[:, 1:], batch["normals"] * batch["silhouette"])
+    # Validation's RGB-D input: the sensor where it measured, the prediction elsewhere.
+    prediction = {"depth": torch.zeros_like(batch["nearness"]), "normals": batch["normals"]}
+    rgbd = sensor_shape_input(batch, prediction)
+    assert torch.equal(rgbd[:, 1:], expected * batch["silhouette"])
 
 
 def test_training_on_predicted_sketches_needs_the_sketch_weights(
