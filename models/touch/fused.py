@@ -157,13 +157,39 @@ class Correction:
         return out
 
 
-def _solve(
-    points: FloatArray, residuals: FloatArray, noise_m: FloatArray, settings: FusionSettings
-) -> FloatArray:
-    variance = settings.prior_std_m**2
-    gram = variance * _cross_kernel(points, points, settings.support_m)
-    gram[np.diag_indices_from(gram)] += noise_m**2
-    return cho_solve(cho_factor(gram, lower=True), residuals)
+@dataclass(frozen=True)
+class _GramFactor:
+    """The lower Cholesky factor of the observations' kernel matrix (noise on its diagonal).
+    A round of free points extends it by their rows (a block update, O(n^2 m)) instead of
+    factoring the grown matrix again (O((n + m)^3))."""
+
+    points_world: FloatArray
+    lower: FloatArray
+
+    @classmethod
+    def of(cls, points: FloatArray, noise_m: FloatArray, settings: FusionSettings) -> _GramFactor:
+        gram = settings.prior_std_m**2 * _cross_kernel(points, points, settings.support_m)
+        gram[np.diag_indices_from(gram)] += noise_m**2
+        return cls(points, cho_factor(gram, lower=True)[0] if len(points) else gram)
+
+    def extended(
+        self, points: FloatArray, noise_m: FloatArray, settings: FusionSettings
+    ) -> _GramFactor:
+        if len(self.points_world) == 0:
+            return _GramFactor.of(points, noise_m, settings)
+        variance, n = settings.prior_std_m**2, len(self.points_world)
+        across = variance * _cross_kernel(self.points_world, points, settings.support_m)
+        below = solve_triangular(self.lower, across, lower=True, check_finite=False)
+        corner = variance * _cross_kernel(points, points, settings.support_m) - below.T @ below
+        corner[np.diag_indices_from(corner)] += noise_m**2
+        lower = np.zeros((n + len(points), n + len(points)))
+        lower[:n, :n] = np.tril(self.lower)
+        lower[n:, :n] = below.T
+        lower[n:, n:] = np.linalg.cholesky(corner)
+        return _GramFactor(np.concatenate([self.points_world, points]), lower)
+
+    def solve(self, residuals: FloatArray) -> FloatArray:
+        return cho_solve((self.lower, True), residuals, check_finite=False)
 
 
 def fit_correction(
@@ -216,7 +242,8 @@ def fit_correction(
         settings,
     )
     residuals = targets - prior(points) if len(points) else targets
-    correction = _correction(points, residuals, noise, variance, settings)
+    factor = _GramFactor.of(points, noise, settings)
+    correction = _correction(factor, residuals, variance, settings)
     free = observations.free_points_world
     prior_free = prior(free) if len(free) else np.zeros(0)
     # Free points farther outside the prior than the correction reaches stay outside.
@@ -231,10 +258,9 @@ def fit_correction(
         added = np.flatnonzero(inside)
         added = added[thin_to_lattice(free[added], settings.surface_spacing_m)]
         held[added] = True
-        points = np.concatenate([points, free[added]])
-        targets = np.concatenate([targets, np.full(len(added), settings.free_target_m)])
-        noise = np.concatenate([noise, np.full(len(added), settings.free_noise_m)])
-        correction = _correction(points, targets - prior(points), noise, variance, settings)
+        factor = factor.extended(free[added], np.full(len(added), settings.free_noise_m), settings)
+        residuals = np.concatenate([residuals, settings.free_target_m - prior_free[added]])
+        correction = _correction(factor, residuals, variance, settings)
     return replace(correction, touched_world=surface)
 
 
@@ -258,17 +284,17 @@ class _VarianceAnchors:
 
 
 def _correction(
-    points: FloatArray,
+    factor: _GramFactor,
     residuals: FloatArray,
-    noise: FloatArray,
     anchors: _VarianceAnchors,
     settings: FusionSettings,
 ) -> Correction:
+    points = factor.points_world
     if len(points) == 0:
         return Correction(
             np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 0)), settings, np.zeros(0)
         )
-    alpha = _solve(points, residuals, noise, settings)
+    alpha = factor.solve(residuals)
     return Correction(points, alpha, anchors.points_world, anchors.cholesky, settings, residuals)
 
 
