@@ -9,7 +9,7 @@ import pytest
 from models.geometry import VoxelGrid
 from models.metrics import distance_to_mesh
 from models.touch.constraints import TouchResult
-from models.touch.fused import FusedShape, FusionSettings
+from models.touch.fused import FusedShape, FusionSettings, _GramFactor
 from models.touch.observations import ObservationsError, SurfaceObservations
 from models.touch.posed_prior import SignedDistanceGrid, fit_pose, posed_grid
 
@@ -181,3 +181,20 @@ def test_observations_from_a_touch_and_back_from_disk(tmp_path) -> None:
         SurfaceObservations.load(path)
     with pytest.raises(ValueError, match="NaN"):
         SurfaceObservations(contacts * np.nan, contacts, np.zeros((0, 3)), np.zeros(len(contacts)))
+
+
+def test_extending_the_kernel_factor_by_free_points_equals_factoring_them_all() -> None:
+    """A round of free points extends the Cholesky factor by their rows: the same factor, and
+    the same weights, as factoring the grown kernel matrix."""
+    rng = np.random.default_rng(0)
+    settings = FusionSettings()
+    points, free = rng.uniform(-0.03, 0.03, (60, 3)), rng.uniform(-0.03, 0.03, (15, 3))
+    noise = np.full(60, settings.surface_noise_m)
+    free_noise = np.full(15, settings.free_noise_m)
+    extended = _GramFactor.of(points, noise, settings).extended(free, free_noise, settings)
+    direct = _GramFactor.of(
+        np.concatenate([points, free]), np.concatenate([noise, free_noise]), settings
+    )
+    np.testing.assert_allclose(np.tril(extended.lower), np.tril(direct.lower), atol=1e-12)
+    residuals = rng.normal(0.0, 0.002, 75)
+    np.testing.assert_allclose(extended.solve(residuals), direct.solve(residuals), rtol=1e-8)
