@@ -220,6 +220,9 @@ class ModelsConfig:
     """Adam's step size on the latent in the global update's fit (models.touch.global_fit)."""
     global_iterations: int = 15
     """Adam steps on the latent per round of the global update's fit."""
+    global_camera_constraints: bool = True
+    """Whether the camera's depth points constrain the global update's latent fit too (the fused
+    correction passes through them in any case)."""
     fusion_policy: Literal["variance", "window"] = "variance"
     """What the active policy reads with the fused update: the fused field's P(inside) with its
     uncertainty ("variance": touched regions are known), or with the prior's uncertainty

@@ -407,7 +407,9 @@ class LearnedPerception:
     def global_settings(self) -> GlobalSettings:
         models = self.config.models
         return GlobalSettings(
-            learning_rate=models.global_learning_rate, iterations=models.global_iterations
+            learning_rate=models.global_learning_rate,
+            iterations=models.global_iterations,
+            camera_constraints=models.global_camera_constraints,
         )
 
     def refine_with(

@@ -195,3 +195,24 @@ def test_cli_config_show(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     bad.write_text("[sim]\nobjekt = 'mug'\n")
     assert main(["config", "show", "--config", str(bad)]) == 2
     assert "unknown key 'sim.objekt'" in capsys.readouterr().err
+
+
+def test_the_global_update_takes_its_settings_from_the_models_section() -> None:
+    from types import SimpleNamespace
+
+    from controller.perception.learned import LearnedPerception
+
+    config = config_from_dict(
+        {
+            "models": {
+                "global_learning_rate": 0.02,
+                "global_iterations": 7,
+                "global_camera_constraints": False,
+            }
+        }
+    )
+    settings = LearnedPerception.global_settings.fget(SimpleNamespace(config=config))
+    assert (settings.learning_rate, settings.iterations) == (0.02, 7)
+    assert settings.camera_constraints is False
+    default = LearnedPerception.global_settings.fget(SimpleNamespace(config=Config()))
+    assert default.camera_constraints is True
