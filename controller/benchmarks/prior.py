@@ -6,6 +6,7 @@ machine and its load).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from functools import partial
 from pathlib import Path
@@ -129,7 +130,13 @@ def benchmark_prior(
     axes = axes_facing_camera(camera.pose_world_camera[:3, 3])
     figures: dict = {
         "benchmark": "prior",
-        "machine": machine(torch_threads=torch.get_num_threads(), torch=torch.__version__),
+        # numpy's and scipy's BLAS threads follow OMP_NUM_THREADS, read once at import: run
+        # with OMP_NUM_THREADS=1 for the one-thread figures (docs/prior.md, "Benchmarks").
+        "machine": machine(
+            torch_threads=torch.get_num_threads(),
+            torch=torch.__version__,
+            omp_num_threads=os.environ.get("OMP_NUM_THREADS"),
+        ),
         "frame": [camera.intrinsics.width, camera.intrinsics.height],
         "presets": {},
     }
