@@ -219,7 +219,11 @@ class ModelsConfig:
     global_learning_rate: float = 0.01
     """Adam's step size on the latent in the global update's fit (models.touch.global_fit)."""
     global_iterations: int = 15
-    """Adam steps on the latent per round of the global update's fit."""
+    """Adam steps on the latent per round of the global update's fit (at most, with
+    ``global_patience``)."""
+    global_patience: int = 0
+    """Stop the global update's fit once this many steps in a row have not improved on its
+    best, and keep that best (0: every step, the last)."""
     global_camera_constraints: bool = True
     """Whether the camera's depth points constrain the global update's latent fit too (the fused
     correction passes through them in any case)."""
@@ -257,6 +261,8 @@ class ModelsConfig:
         require_positive(self, "global_learning_rate")
         if self.global_iterations < 0:
             raise FieldError("global_iterations", "must be >= 0")
+        if self.global_patience < 0:
+            raise FieldError("global_patience", "must be >= 0 (0: off)")
         require_positive(self, "fusion_support_m")
         require_positive(self, "fusion_prior_std_m")
         if self.refine_iterations_per_touch < 0:

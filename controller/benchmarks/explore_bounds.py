@@ -15,8 +15,15 @@ frame, the prior's vision estimate, the voxelised truth; every estimate measured
   config's ``[models]`` fusion settings): the prior's surface bent through every measured
   point by the Gaussian-process correction (``models.touch.fused``; the latent refinement and
   the pose fit first where the config enables them).
+* ``ideal_touches_global_mm``: the same touches with the global update (the default: the
+  prior's latent fitted to every touch, taken once it predicts a held-out touch, then the fused
+  correction on that mean; ``models.touch.global_fit``).
 * ``ideal_touches_mm``: the same touches with the prior update (``LearnedPerception.refine_with``
   on the merged voxel constraints of all touches so far).
+
+The fused and global curves start where a session starts (``start_mm``: with depth, the camera's
+points fused into the prior, as ``bench explore`` starts them); the prior update's from the
+prior's voxels (``vision_mm``), as it refines them.
 
 Each ideal touch is a pad-sized range image (a :class:`TouchResult`, world-frame rays): every
 ray of the pad, 1 mm apart, measures its first hit on the true mesh within ``IDEAL_DEPTH_M`` of
@@ -38,7 +45,7 @@ from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from functools import partial
-from typing import Any, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -72,13 +79,15 @@ MIN_TARGET_HEIGHT_M = 0.01
 MAX_DOWNWARD_NORMAL_Z = -0.5
 """Targets on the bottom (normals pointing down more than this) are left out, as the pipeline's
 table filter leaves out approaches from below."""
-UPDATES = ("fused", "prior")
+UPDATES = ("global", "fused", "prior")
 """The shape updates the ideal touches are refined by (:func:`refiner`)."""
 CURVE_KEYS = {
     ("prior", False): "ideal_touches",
     ("prior", True): "ideal_oracle_touches",
     ("fused", False): "ideal_touches_fused",
     ("fused", True): "ideal_oracle_touches_fused",
+    ("global", False): "ideal_touches_global",
+    ("global", True): "ideal_oracle_touches_global",
 }
 """(update, oracle) -> the row's curve key (``<key>_mm``) and the summary's."""
 
@@ -98,7 +107,9 @@ class BoundsSettings:
     prior: str = "auto"
     seed: int = 0
     updates: tuple[str, ...] = UPDATES
-    """The shape updates with ideal touches (``fused``, ``prior``)."""
+    """The shape updates with ideal touches (``global``, ``fused``, ``prior``)."""
+    input_mode: Literal["auto", "rgb", "rgbd"] = "auto"
+    """The camera input vision starts from (``auto``: RGB-D where the camera gives depth)."""
 
     def __post_init__(self) -> None:
         if not self.touch_counts or min(self.touch_counts) < 1:
@@ -183,20 +194,30 @@ class IdealCurve(NamedTuple):
     """The estimate after the last touch."""
 
 
+def curve_start(run: ObjectRun, update: str) -> tuple[ShapeEstimate, float | None]:
+    """Where ``update``'s curve starts, and its Chamfer distance: the fused and global updates
+    from the session's start (the camera's depth fused in, where the input has it), the prior
+    update from the prior's voxels."""
+    if update in ("fused", "global"):
+        return run.vision_fused, run.vision_fused_metrics["chamfer_mm"]
+    return run.vision, run.vision_metrics["chamfer_mm"]
+
+
 def ideal_touch_curve(
     run: ObjectRun,
     refine: Refine,
+    start: tuple[ShapeEstimate, float | None],
     pad_size_m: tuple[float, float],
     touches: int,
     candidates_per_touch: int,
     seed: int,
 ) -> IdealCurve:
-    """Chamfer distance after 0..``touches`` ideal touches from the vision estimate, each the
-    best of ``candidates_per_touch`` random targets by the truth (1: no choice), refined by
-    ``refine`` with all touches so far and scored by ``run.metrics``."""
+    """Chamfer distance after 0..``touches`` ideal touches from the ``start`` estimate (and its
+    distance), each the best of ``candidates_per_touch`` random targets by the truth (1: no
+    choice), refined by ``refine`` with all touches so far and scored by ``run.metrics``."""
     points, normals = ideal_targets(run.mesh_world, touches * candidates_per_touch, seed)
-    estimate, made = run.vision, []
-    chamfers = [run.vision_metrics["chamfer_mm"]]
+    (estimate, start_mm), made = start, []
+    chamfers = [start_mm]
     for touch in range(touches):
         trials = []
         for index in range(touch * candidates_per_touch, (touch + 1) * candidates_per_touch):
@@ -211,11 +232,12 @@ def ideal_touch_curve(
 
 
 def refiner(run: ObjectRun, perception: LearnedPerception, update: str) -> Refine:
-    """The pipeline's refinement by ``update``: ``fused`` (:meth:`LearnedPerception.
-    refine_fused` on the touches) or ``prior`` (:meth:`LearnedPerception.refine_with` on their
-    merged voxel constraints in the estimate's grid)."""
-    if update == "fused":
-        fused_request = run.request("active", "fused")
+    """The pipeline's refinement by ``update``: ``global`` or ``fused``
+    (:meth:`LearnedPerception.refine_fused` on the touches) or ``prior``
+    (:meth:`LearnedPerception.refine_with` on their merged voxel constraints in the estimate's
+    grid)."""
+    if update in ("fused", "global"):
+        fused_request = run.request("active", update)
 
         def refine_fused(estimate: ShapeEstimate, touches: list[TouchResult]) -> ShapeEstimate:
             return perception.refine_fused(estimate, touches, fused_request)
@@ -241,7 +263,9 @@ def object_bounds(
 ) -> dict[str, Any]:
     """One object's row of the bounds JSON."""
     touches = max(settings.touch_counts)
-    explore = ExploreSettings(touches=touches, prior=settings.prior, seed=settings.seed)
+    explore = ExploreSettings(
+        touches=touches, input_mode=settings.input_mode, prior=settings.prior, seed=settings.seed
+    )
     run = ObjectRun(config, calibration, priors, obj, explore)
     prior = run.prior
     try:
@@ -260,6 +284,7 @@ def object_bounds(
             "name": obj.name,
             "category": obj.category,
             "vision_mm": run.vision_metrics["chamfer_mm"],
+            "start_mm": run.vision_fused_metrics["chamfer_mm"],
             "floor_mm": _chamfer_mm(run, run.truth),
             "latent_fit_mm": _chamfer_mm(run, fitted_probabilities),
         }
@@ -268,7 +293,8 @@ def object_bounds(
         made: list[TouchResult] = []
         for update in settings.updates:
             # The same seeds for every update: they see the same touches.
-            curve = partial(ideal_touch_curve, run, refiner(run, perception, update), pad_size_m)
+            refine = refiner(run, perception, update)
+            curve = partial(ideal_touch_curve, run, refine, curve_start(run, update), pad_size_m)
             ideal = curve(touches, 1, run.metric_seed)
             row[f"{CURVE_KEYS[update, False]}_mm"], made = ideal.chamfer_mm, ideal.touches
             if settings.oracle_candidates > 1:
@@ -285,22 +311,24 @@ def object_bounds(
 
 
 def summarise_bounds(rows: Sequence[dict[str, Any]], touch_counts: Sequence[int]) -> dict:
-    """Means over objects; ``*_change_pct`` are means of the per-object changes from vision."""
+    """Means over objects; ``*_change_pct`` are means of the per-object changes: the floor's
+    and the latent fit's from vision's voxels, each curve's from its own start (its first
+    value)."""
     summary: dict[str, Any] = {
-        key: finite_mean([row[key] for row in rows])
-        for key in ("vision_mm", "floor_mm", "latent_fit_mm")
+        key: finite_mean([row[key] for row in rows if key in row])
+        for key in ("vision_mm", "start_mm", "floor_mm", "latent_fit_mm")
     }
     for key, name in (("floor_mm", "floor"), ("latent_fit_mm", "latent_fit")):
         summary[f"{name}_change_pct"] = finite_mean(
             [change_pct(row["vision_mm"], row[key]) for row in rows]
         )
     for key in CURVE_KEYS.values():
-        curves = [(row["vision_mm"], row[f"{key}_mm"]) for row in rows if f"{key}_mm" in row]
+        curves = [row[f"{key}_mm"] for row in rows if f"{key}_mm" in row]
         if curves:
             summary[key] = {
                 str(count): {
-                    "chamfer_mm": finite_mean([curve[count] for _, curve in curves]),
-                    "change_pct": finite_mean([change_pct(v, curve[count]) for v, curve in curves]),
+                    "chamfer_mm": finite_mean([curve[count] for curve in curves]),
+                    "change_pct": finite_mean([change_pct(c[0], c[count]) for c in curves]),
                 }
                 for count in touch_counts
             }
@@ -341,6 +369,7 @@ def run_bounds(
         "fit": {"steps": settings.fit_steps, "learning_rate": settings.fit_learning_rate},
         "oracle_candidates": settings.oracle_candidates,
         "updates": list(settings.updates),
+        "input": settings.input_mode,
         "ideal_touch": {
             "ray_spacing_mm": IDEAL_RAY_SPACING_M * 1e3,
             "depth_beyond_target_mm": IDEAL_DEPTH_M * 1e3,

@@ -162,9 +162,15 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
     bounds.add_argument(
         "--updates",
         nargs="+",
-        choices=("fused", "prior"),
-        default=["fused", "prior"],
-        help="shape updates refined by the ideal touches (default: both)",
+        choices=("global", "fused", "prior"),
+        default=["global", "fused", "prior"],
+        help="shape updates refined by the ideal touches (default: all three)",
+    )
+    bounds.add_argument(
+        "--input",
+        choices=("auto", "rgb", "rgbd"),
+        default="auto",
+        help="camera input vision starts from (auto: RGB-D where the camera gives depth)",
     )
     bounds.add_argument("--prior", default=None, help="prior name (default: the config's)")
     bounds.add_argument("--seed", type=int, default=0)
@@ -392,6 +398,7 @@ def bench_explore_bounds(args: argparse.Namespace) -> int:
         prior=prior_name,
         seed=args.seed,
         updates=tuple(args.updates),
+        input_mode=args.input,
     )
     _run_and_print(run_bounds, args, config, prior_name, settings)
     return 0

@@ -409,6 +409,7 @@ class LearnedPerception:
         return GlobalSettings(
             learning_rate=models.global_learning_rate,
             iterations=models.global_iterations,
+            patience=models.global_patience or None,
             camera_constraints=models.global_camera_constraints,
         )
 

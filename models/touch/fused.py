@@ -361,7 +361,8 @@ class FusedShape:
         ``_EXACT_NEAR_M`` of the touches' points (where they follow the measured detail)."""
         n = grid.resolution
         centres = grid.voxel_centres_world()
-        prior_field = np.maximum(self.prior(centres), -centres[..., 2])
+        prior_values = self.prior(centres)
+        prior_field = np.maximum(prior_values, -centres[..., 2])
         prior_std = self.correction.settings.prior_std_m
         # Only near the surface can the correction change the sign or the probability: farther
         # than its largest value plus 4 prior deviations, P(inside) is 0 or 1 whatever it adds.
@@ -393,7 +394,7 @@ class FusedShape:
                 correction.reshape(-1)[exact] = self.correction.mean(exact_points)
                 if use_variance:
                     std.reshape(-1)[exact] = self.correction.std(exact_points)
-        field = np.maximum(self.prior(centres) + correction, -centres[..., 2])
+        field = np.maximum(prior_values + correction, -centres[..., 2])
         field = np.where(band, field, prior_field)
         if not use_variance:
             std[:] = prior_std

@@ -57,7 +57,10 @@ class GlobalSettings:
     42.9; the latent alone 19.2 and 21.3; docs/touch.md)."""
     learning_rate: float = 0.01
     iterations: int = 15
-    """Adam steps on the latent per round."""
+    """Adam steps on the latent per round (at most: see ``patience``)."""
+    patience: int | None = None
+    """Stop a round once this many steps in a row have not improved on its best fit, and keep
+    that best (``refine_latent``); None: every step, the last fit."""
     anchor_weight: float = 0.03
     """Pull of the latent towards vision's (as the "prior" update)."""
     margin_m: float = 0.0002
@@ -194,6 +197,7 @@ def fit_mean(
             loss="threshold",
             anchor_latent=anchor_latent,
             anchor_weight=settings.anchor_weight if anchor_latent is not None else 0.0,
+            patience=settings.patience,
         )
         latent, probabilities = result.latent, result.voxels.numpy()
     return replace(ShapeMean.of(latent, probabilities, grid), pose=pose)

@@ -42,7 +42,11 @@ def thin_to_lattice(points: FloatArray, spacing_m: float) -> NDArray[np.int64]:
     if len(points) == 0:
         return np.zeros(0, np.int64)
     cells = np.floor(points / spacing_m).astype(np.int64)
-    _, keep = np.unique(cells, axis=0, return_index=True)
+    cells -= cells.min(axis=0)
+    # One integer per cell (a row-major index of the cells' box): np.unique on rows sorts
+    # them as records, several times slower. Its stable sort keeps each cell's first point.
+    key = np.ravel_multi_index(cells.T, tuple(cells.max(axis=0) + 1))
+    _, keep = np.unique(key, return_index=True)
     return np.sort(keep)
 
 

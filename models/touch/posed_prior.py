@@ -57,8 +57,7 @@ class SignedDistanceGrid:
         # Euclidean distance transform: voxel centre to the nearest centre on the other side,
         # minus half a voxel (the surface lies between them).
         outside_d = distance_transform_edt(~inside) - 0.5
-        inside_d = distance_transform_edt(inside) - 0.5
-        values = np.where(inside, -inside_d, outside_d)
+        values = np.where(inside, -(_inside_distance(inside) - 0.5), outside_d)
         band = np.abs(values) <= _BAND_VOXELS
         vertices, faces, _, _ = marching_cubes(np.pad(volume, 1), 0.5)
         mesh = trimesh.Trimesh(vertices - 0.5, faces, process=False)  # voxel coordinates
@@ -67,7 +66,10 @@ class SignedDistanceGrid:
         samples, _ = trimesh.sample.sample_surface(mesh, count, seed=0)
         samples = np.concatenate([samples, mesh.vertices])
         centres = np.argwhere(band) + 0.5
-        distance, _ = cKDTree(samples).query(centres)
+        # An unbalanced tree of uncompacted nodes: the same nearest samples, built and
+        # queried in about half the time on these surface samples.
+        tree = cKDTree(samples, balanced_tree=False, compact_nodes=False)
+        distance, _ = tree.query(centres)
         values[band] = np.where(inside[band], -distance, distance)
         return cls(grid, values.astype(np.float32))
 
@@ -88,6 +90,20 @@ class SignedDistanceGrid:
         outside = np.linalg.norm(index - clamped, axis=1)
         values = np.where(outside > 0, np.maximum(values, 0.0) + outside, values)
         return (values * self.grid.voxel_size_m).reshape(points.shape[:-1])
+
+
+def _inside_distance(inside: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """The Euclidean distance transform of ``inside`` (voxel centres to the nearest outside
+    one), computed on the inside voxels' box grown by one voxel within the grid: the grown
+    layers are outside, and an outside voxel beyond them is farther from every inside voxel than
+    its clamp onto them. The same numbers as on the whole grid, on a fraction of it."""
+    occupied = np.argwhere(inside)
+    low = np.maximum(occupied.min(axis=0) - 1, 0)
+    high = np.minimum(occupied.max(axis=0) + 2, inside.shape)
+    box = tuple(slice(lo, hi) for lo, hi in zip(low, high, strict=True))
+    distance = np.zeros(inside.shape)
+    distance[box] = distance_transform_edt(inside[box])
+    return distance
 
 
 # --- pose fit -------------------------------------------------------------------------------------

@@ -85,7 +85,8 @@ def touch_loss(
 @dataclass(frozen=True)
 class RefinementResult:
     """Refined latent (shape as given), its decoded volume (N, N, N) and the loss before each
-    update plus after the last one (iterations + 1 values)."""
+    update plus after the last one (iterations + 1 values; fewer where ``patience`` stopped
+    early, and then the latent is the best one evaluated)."""
 
     latent: Tensor
     voxels: Tensor
@@ -102,15 +103,24 @@ def refine_latent(
     loss: TouchLossKind = "sum",
     anchor_latent: Tensor | None = None,
     anchor_weight: float = 0.0,
+    patience: int | None = None,
 ) -> RefinementResult:
     """Update the latent so the decoded shape agrees with the touches (the paper's refinement).
 
     Pass the constraints of all touches so far and the latent from the previous refinement (or
     the vision estimate). The decoder's parameters are left untouched: only the latent's
     gradient is computed. Returns detached tensors.
+
+    ``patience``: stop once this many updates in a row have not lowered the objective below
+    the best evaluated so far, and return that best latent (and its volume, already decoded).
+    A refinement started where the touches are explained already (a warm start from the last
+    touch's fit) then costs a few decodes instead of ``iterations``. None: every iteration,
+    the last latent.
     """
     if iterations < 0 or learning_rate <= 0 or anchor_weight < 0:
         raise ValueError("iterations and anchor_weight must be >= 0 and learning_rate positive")
+    if patience is not None and patience < 1:
+        raise ValueError("patience must be >= 1 (or None)")
     if anchor_weight > 0 and anchor_latent is None:
         raise ValueError("anchor_weight needs an anchor_latent")
     anchor = None if anchor_latent is None else anchor_latent.detach().reshape(latent.shape)
@@ -129,15 +139,27 @@ def refine_latent(
     else:
         raise ValueError(f"unknown optimizer {optimizer!r}; expected 'adam' or 'sgd'")
     losses: list[float] = []
+    best: tuple[float, Tensor, Tensor] | None = None  # objective, latent, volume
+    stale = 0
     with torch.enable_grad():
         for _ in range(iterations):
-            value = objective(decode_volume(decode, variable), variable)
+            voxels = decode_volume(decode, variable)
+            value = objective(voxels, variable)
+            losses.append(float(value.detach()))
+            if patience is not None:
+                if best is None or losses[-1] < best[0]:
+                    best, stale = (losses[-1], variable.detach().clone(), voxels.detach()), 0
+                else:
+                    stale += 1
+                    if stale >= patience:
+                        return RefinementResult(best[1], best[2], losses)
             (variable.grad,) = torch.autograd.grad(value, variable)
             step.step()
-            losses.append(float(value.detach()))
     with torch.no_grad():
         voxels = decode_volume(decode, variable)
         losses.append(float(objective(voxels, variable)))
+    if best is not None and best[0] <= losses[-1]:
+        return RefinementResult(best[1], best[2], losses)
     return RefinementResult(variable.detach(), voxels.detach(), losses)
 
 

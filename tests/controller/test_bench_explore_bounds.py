@@ -15,6 +15,7 @@ from controller.benchmarks import explore_bounds
 from controller.benchmarks.explore import ExploreSettings, ObjectRun
 from controller.benchmarks.explore_bounds import (
     BoundsSettings,
+    curve_start,
     fit_latent_to_volume,
     ideal_targets,
     ideal_touch,
@@ -97,14 +98,12 @@ def test_the_ideal_oracle_keeps_the_best_candidate_each_touch(sphere, grid) -> N
             "chamfer_mm": 1000.0 / len(constraints_from_touches(estimate.touches, grid).occupied)
         }
 
-    run = SimpleNamespace(
-        mesh_world=sphere, grid=grid, vision=None, vision_metrics={"chamfer_mm": 9.0}, metrics=error
-    )
+    run = SimpleNamespace(mesh_world=sphere, grid=grid, metrics=error)
 
     def refine(estimate, touches):
         return SimpleNamespace(touches=list(touches))
 
-    curve, made, estimate = ideal_touch_curve(run, refine, PAD_M, 2, 3, seed=0)
+    curve, made, estimate = ideal_touch_curve(run, refine, (None, 9.0), PAD_M, 2, 3, seed=0)
     points, normals = ideal_targets(sphere, 6, seed=0)
     touches = [ideal_touch(sphere, p, n, PAD_M) for p, n in zip(points, normals, strict=True)]
     first = max(touches[:3], key=lambda t: len(constraints_from_touches([t], grid).occupied))
@@ -120,7 +119,8 @@ def test_the_ideal_oracle_keeps_the_best_candidate_each_touch(sphere, grid) -> N
 
 
 def test_the_refiners_pass_all_touches_to_the_pipeline(sphere, grid) -> None:
-    """Fused: the touches themselves, with a fused request; prior: their merged constraints."""
+    """Fused and global: the touches themselves, with their update's request; prior: their
+    merged constraints."""
     calls: list = []
     perception = SimpleNamespace(
         refine_fused=lambda estimate, touches, request: calls.append((touches, request)),
@@ -129,11 +129,13 @@ def test_the_refiners_pass_all_touches_to_the_pipeline(sphere, grid) -> None:
     run = SimpleNamespace(grid=grid, request=lambda policy, update: (policy, update))
     points, normals = ideal_targets(sphere, 2, seed=1)
     touches = [ideal_touch(sphere, p, n, PAD_M) for p, n in zip(points, normals, strict=True)]
+    refiner(run, perception, "global")("vision", touches)
     refiner(run, perception, "fused")("vision", touches)
     refiner(run, perception, "prior")("vision", touches)
-    (fused_touches, fused_request), (constraints, prior_request) = calls
-    assert fused_touches == touches  # the same objects
-    assert fused_request == ("active", "fused")
+    (global_touches, global_request), (fused_touches, fused_request), prior_call = calls
+    constraints, prior_request = prior_call
+    assert global_touches == touches and fused_touches == touches  # the same objects
+    assert global_request == ("active", "global") and fused_request == ("active", "fused")
     expected = touch_constraints(touches[0], grid).merged(touch_constraints(touches[1], grid))
     assert np.array_equal(constraints.occupied, expected.occupied)
     assert np.array_equal(constraints.empty, expected.empty)
@@ -168,6 +170,7 @@ def test_summary_means_the_per_object_changes() -> None:
     rows[0]["ideal_touches_fused_mm"] = [10.0, 5.0]
     rows[1]["ideal_touches_fused_mm"] = [4.0, 1.0]
     rows[1]["ideal_oracle_touches_fused_mm"] = [4.0, 3.0]
+    rows[0]["ideal_touches_global_mm"] = [8.0, 6.0]  # from its own start (the session's)
     summary = summarise_bounds(rows, (1,))
     assert summary["vision_mm"] == 7.0 and summary["latent_fit_mm"] == 5.0
     assert summary["latent_fit_change_pct"] == pytest.approx(-20.0)  # mean of -40 % and 0 %
@@ -175,6 +178,7 @@ def test_summary_means_the_per_object_changes() -> None:
     assert summary["ideal_touches"]["1"] == {"chamfer_mm": 5.5, "change_pct": -30.0}
     assert summary["ideal_touches_fused"]["1"] == {"chamfer_mm": 3.0, "change_pct": -62.5}
     assert summary["ideal_oracle_touches_fused"]["1"] == {"chamfer_mm": 3.0, "change_pct": -25.0}
+    assert summary["ideal_touches_global"]["1"] == {"chamfer_mm": 6.0, "change_pct": -25.0}
     assert "ideal_oracle_touches" not in summary  # no row has that curve
 
 
@@ -190,12 +194,16 @@ def test_bounds_json_on_a_small_object(calibration) -> None:
     json.dumps(result, allow_nan=False)
     (row,) = result["objects"]
     assert row["name"] == "small_box" and 0.0 < row["floor_mm"] < 4.0  # within a voxel
-    keys = ("ideal_touches", "ideal_oracle_touches", "ideal_touches_fused")
-    for key in (*keys, "ideal_oracle_touches_fused"):
-        assert len(row[f"{key}_mm"]) == 2 and row[f"{key}_mm"][0] == row["vision_mm"]
-        assert set(result["summary"][key]) == {"1"}
+    # The bench's camera gives depth: the fused and global curves start from the session's
+    # start (the depth fused in), the prior update's from the prior's voxels.
+    assert result["input"] == "auto" and row["start_mm"] != row["vision_mm"]
+    starts = {"": "vision_mm", "_fused": "start_mm", "_global": "start_mm"}
+    for update, start in starts.items():
+        for key in (f"ideal_touches{update}", f"ideal_oracle_touches{update}"):
+            assert len(row[f"{key}_mm"]) == 2 and row[f"{key}_mm"][0] == row[start]
+            assert set(result["summary"][key]) == {"1"}
     assert row["ideal_voxels_per_touch"]["occupied"] > 0
-    assert result["updates"] == ["fused", "prior"]
+    assert result["updates"] == ["global", "fused", "prior"]
     fusion = result["refinement"]["fusion"]
     assert fusion["support_m"] == config.models.fusion_support_m
     assert fusion["prior_std_m"] == config.models.fusion_prior_std_m
@@ -213,7 +221,8 @@ def test_ideal_touches_bend_the_fused_surface_through_their_contacts(calibration
     try:
         perception = run.perception(0)
         refine = refiner(run, perception, "fused")
-        curve = ideal_touch_curve(run, refine, perception.pad_size_m, 2, 1, run.metric_seed)
+        start = curve_start(run, "fused")
+        curve = ideal_touch_curve(run, refine, start, perception.pad_size_m, 2, 1, run.metric_seed)
         assert len(curve.chamfer_mm) == 3 and len(curve.touches) == 2
         assert curve.chamfer_mm[-1] < curve.chamfer_mm[0]
         assert curve.estimate.fused is not None
@@ -253,8 +262,10 @@ def test_the_bounds_command_runs_the_bounds_as_asked(
     assert calls["priors"] == "prior box" and calls["calibration"] == "calibration"
     assert calls["workers"] == 2 and calls["threads"] == 1
     assert json.loads(out.read_text())["summary"] == {"objects": 1}
-    assert main([*argv, "--prior", "box", "--updates", "prior"]) == 0
-    assert calls["settings"] == BoundsSettings((10, 30), prior="box", updates=("prior",))
+    assert main([*argv, "--prior", "box", "--updates", "prior", "--input", "rgb"]) == 0
+    assert calls["settings"] == BoundsSettings(
+        (10, 30), prior="box", updates=("prior",), input_mode="rgb"
+    )
     with pytest.raises(SystemExit):
         main([*argv, "--updates", "direct"])
 

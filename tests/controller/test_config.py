@@ -112,6 +112,7 @@ def test_bad_config_files_name_the_key(tmp_path: Path, text: str, message: str) 
         ("[gripper]\ntcp_port = 70000\n", "'gripper.tcp_port' must be in 1..65535"),
         ("[robot.arm]\nconnect_attempts = 0\n", "'robot.arm.connect_attempts' must be at least"),
         ("[sensor]\nimage_noise_sigma = -1.0\n", "'sensor.image_noise_sigma' must be >= 0"),
+        ("[models]\nglobal_patience = -1\n", "'models.global_patience' must be >= 0"),
         ("[sim]\ntable_size_m = [1.2, 0.0]\n", "'sim.table_size_m' must be positive"),
         ("[motion]\nstandoff_m = 0.07\n", "'motion.standoff_m' must be below"),
         ("[models]\nprior = '../../etc/passwd'\n", "'models.prior' must be 1..64 letters"),
@@ -207,12 +208,13 @@ def test_the_global_update_takes_its_settings_from_the_models_section() -> None:
             "models": {
                 "global_learning_rate": 0.02,
                 "global_iterations": 7,
+                "global_patience": 2,
                 "global_camera_constraints": False,
             }
         }
     )
     settings = LearnedPerception.global_settings.fget(SimpleNamespace(config=config))
-    assert (settings.learning_rate, settings.iterations) == (0.02, 7)
+    assert (settings.learning_rate, settings.iterations, settings.patience) == (0.02, 7, 2)
     assert settings.camera_constraints is False
     default = LearnedPerception.global_settings.fget(SimpleNamespace(config=Config()))
     assert default.camera_constraints is True

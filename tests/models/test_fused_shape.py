@@ -5,13 +5,19 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.ndimage import distance_transform_edt
 
 from models.geometry import VoxelGrid
 from models.metrics import distance_to_mesh
 from models.touch.constraints import TouchResult
 from models.touch.fused import FusedShape, FusionSettings, _GramFactor
-from models.touch.observations import ObservationsError, SurfaceObservations
-from models.touch.posed_prior import SignedDistanceGrid, fit_pose, posed_grid
+from models.touch.observations import ObservationsError, SurfaceObservations, thin_to_lattice
+from models.touch.posed_prior import (
+    SignedDistanceGrid,
+    _inside_distance,
+    fit_pose,
+    posed_grid,
+)
 
 GRID = VoxelGrid(64, 0.26, (0.0, 0.0, 0.0))
 HALF = np.array([0.04, 0.03, 0.05])  # a rounded box 8 x 6 x 10 cm
@@ -198,3 +204,32 @@ def test_extending_the_kernel_factor_by_free_points_equals_factoring_them_all() 
     np.testing.assert_allclose(np.tril(extended.lower), np.tril(direct.lower), atol=1e-12)
     residuals = rng.normal(0.0, 0.002, 75)
     np.testing.assert_allclose(extended.solve(residuals), direct.solve(residuals), rtol=1e-8)
+
+
+def test_the_inside_distance_on_the_objects_box_equals_the_whole_grids() -> None:
+    """The prior's inside distances are computed on the inside voxels' box grown by one: the
+    same numbers as the whole grid's transform, also where the object meets the grid's faces."""
+    rng = np.random.default_rng(0)
+    for trial in range(60):
+        inside = np.zeros((24, 24, 24), dtype=bool)
+        low = rng.integers(0, 12, 3)
+        high = low + rng.integers(1, 13, 3)
+        inside[tuple(slice(lo, hi) for lo, hi in zip(low, high, strict=True))] = True
+        inside &= rng.random(inside.shape) < 0.9  # holes: outside voxels inside the box
+        if trial % 3 == 0:
+            inside[:, :, :2] = True  # on the grid's face
+        if not inside.any() or inside.all():
+            continue
+        np.testing.assert_array_equal(_inside_distance(inside), distance_transform_edt(inside))
+
+
+def test_thinning_keeps_the_first_point_of_every_cell() -> None:
+    rng = np.random.default_rng(1)
+    points = rng.normal(0.0, 0.02, (500, 3)) + np.array([0.3, -0.2, 0.1])
+    spacing = 0.004
+    keep = thin_to_lattice(points, spacing)
+    cells = [tuple(c) for c in np.floor(points / spacing).astype(int)]
+    first = {}
+    for index, cell in enumerate(cells):
+        first.setdefault(cell, index)
+    np.testing.assert_array_equal(keep, sorted(first.values()))

@@ -236,3 +236,33 @@ def test_touches_shrink_a_too_fat_sphere_through_the_latent() -> None:
     radius_after = 0.05 + 0.05 * float(result.latent[0, 0])
     assert result.losses[-1] < result.losses[0]
     assert true_radius_m - 0.005 < radius_after < 0.05 - 0.005
+
+
+def test_patience_stops_where_the_objective_stops_improving_and_keeps_the_best() -> None:
+    """Steps far too long (lr 1 against an anchor 0.01 away) only ever overshoot: ``patience``
+    updates later the refinement stops and returns the start, with its volume; None runs every
+    step and returns the last latent."""
+    decoder = TinyDecoder().eval()
+    latent = torch.randn(1, 200, generator=torch.Generator().manual_seed(3))
+    overshoot = {
+        "constraints": VoxelConstraints.none(N),
+        "learning_rate": 1.0,
+        "iterations": 15,
+        "anchor_latent": latent + 0.01,
+        "anchor_weight": 1.0,
+    }
+    every = refine_latent(decoder, latent, **overshoot)
+    assert len(every.losses) == 16 and min(every.losses[1:]) > every.losses[0]
+    assert not torch.equal(every.latent, latent)
+    held = refine_latent(decoder, latent, **overshoot, patience=3)
+    assert held.losses == every.losses[:4]  # the start, then 3 updates that did not improve
+    torch.testing.assert_close(held.latent, latent)
+    torch.testing.assert_close(held.voxels, decoder(latent).detach())
+    # While the objective keeps falling, patience changes nothing.
+    free = refine_latent(decoder, latent, _constraints(), 1e-2, iterations=10)
+    assert all(b < a for a, b in zip(free.losses, free.losses[1:], strict=False))
+    patient = refine_latent(decoder, latent, _constraints(), 1e-2, iterations=10, patience=3)
+    torch.testing.assert_close(patient.latent, free.latent)
+    assert patient.losses == free.losses
+    with pytest.raises(ValueError, match="patience"):
+        refine_latent(decoder, latent, _constraints(), patience=0)
