@@ -60,7 +60,8 @@ class GlobalSettings:
     """Adam steps on the latent per round (at most: see ``patience``)."""
     patience: int | None = None
     """Stop a round once this many steps in a row have not improved on its best fit, and keep
-    that best (``refine_latent``); None: every step, the last fit."""
+    that best (``refine_latent``); None: every step, the last fit (the default: faster, the
+    early stop lowered the shapes a little; docs/touch.md, "Cost")."""
     anchor_weight: float = 0.03
     """Pull of the latent towards vision's (as the "prior" update)."""
     margin_m: float = 0.0002

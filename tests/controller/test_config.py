@@ -202,6 +202,7 @@ def test_the_global_update_takes_its_settings_from_the_models_section() -> None:
     from types import SimpleNamespace
 
     from controller.perception.learned import LearnedPerception
+    from models.touch.global_fit import GlobalSettings
 
     config = config_from_dict(
         {
@@ -218,3 +219,4 @@ def test_the_global_update_takes_its_settings_from_the_models_section() -> None:
     assert settings.camera_constraints is False
     default = LearnedPerception.global_settings.fget(SimpleNamespace(config=Config()))
     assert default.camera_constraints is True
+    assert default.patience is None is GlobalSettings().patience  # the config's default: off

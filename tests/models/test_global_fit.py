@@ -143,3 +143,23 @@ def test_a_pose_that_moves_the_shape_into_space_seen_empty_is_seen(bottle_vision
     assert seen_empty_fraction(vision, seen_empty) == 0.0
     assert seen_empty_fraction(grown, seen_empty) > 0.2
     assert seen_empty_fraction(grown, None) == 0.0
+
+
+def test_the_fit_stops_where_it_stops_improving(bottle_vision, monkeypatch):
+    """The global fit hands its patience to the latent's refinement (the default: none)."""
+    import models.touch.global_fit as global_fit
+
+    prior, latent, vision = bottle_vision
+    seen: list = []
+    refine = global_fit.refine_latent
+
+    def recording(*args, **kwargs):
+        seen.append(kwargs["patience"])
+        return refine(*args, **kwargs)
+
+    monkeypatch.setattr(global_fit, "refine_latent", recording)
+    touches = _ideal_touches(_surface(vision.probabilities, GRID), 1, seed=5)
+    observations = observations_of(touches)
+    for settings in (GlobalSettings(), GlobalSettings(patience=3)):
+        global_fit.fit_mean(prior.decode, vision, latent, touches, observations, settings)
+    assert seen == [None, 3]
