@@ -223,7 +223,7 @@ class ModelsConfig:
     ``global_patience``)."""
     global_patience: int = 0
     """Stop the global update's fit once this many steps in a row have not improved on its
-    best, and keep that best (0: every step, the last). Off: 3 meets issue 27's 0.5 s per
+    best, and keep that best (0: every step, the last). Off: 3 meets the 0.5 s asked per
     touch but lowered the shapes a little on three of four sets (docs/touch.md, "Cost")."""
     global_camera_constraints: bool = True
     """Whether the camera's depth points constrain the global update's latent fit too (the fused
