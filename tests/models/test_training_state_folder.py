@@ -22,8 +22,9 @@ def test_the_training_state_is_at_most_40_mb() -> None:
 def test_every_floating_tensor_of_the_training_state_is_float16() -> None:
     for path in _checkpoints():
         state = torch.load(path, map_location="cpu", weights_only=False)
-        tensors = list(state["model"].values())
-        if state["optimizer"] is not None:
+        # A checkpoint ("model", "optimizer"), or a finished run's weights file ("state_dict").
+        tensors = list(state.get("model", state.get("state_dict", {})).values())
+        if state.get("optimizer") is not None:
             tensors += [
                 t
                 for slot in state["optimizer"]["state"].values()
