@@ -15,9 +15,14 @@
 #   nohup scripts/train_creature_sketch.sh > logs/train_creature_sketch.log 2>&1 &
 # 1. Data: the object-frame recipe's 20 groups and the creature family, 120 shapes x 6 views
 #    each, seed 0 (the data of scripts/train_wide_shape_prior.sh).
-# 2. From object_frame_sketch_cpu.pt: Adam 1e-4, 1e-5 from epoch 2, batch 16, 2 epochs, seed 0.
+# 2. From INIT: Adam 1e-4, 1e-5 from epoch 2, batch 16, 2 epochs, seed 0.
 # Then, to judge it: `eval prior --input rgb` on the real meshes and the procedural set with
 # these sketch weights beside the committed shape net (docs/prior.md).
+# The committed object_frame_sketch_cpu.pt came from this script (2026-12-05), started from the
+# sketch weights before it (models/prior/weights/RECIPE.md):
+#   git show a2f1800:models/prior/weights/object_frame_sketch_cpu.pt > logs/object_frame_sketch_a2f1800.pt
+#   INIT=logs/object_frame_sketch_a2f1800.pt scripts/train_creature_sketch.sh
+#   cp training_state/object_frame_sketch/sketch.pt models/prior/weights/object_frame_sketch_cpu.pt
 set -euo pipefail
 PY=${PY:-.venv/bin/python}
 TS="$PY -m controller.cli.prior"
@@ -26,7 +31,7 @@ RUN=${RUN:-logs/train/object_frame_sketch_creature}
 STATE=${STATE:-training_state/object_frame_sketch}
 MINUTES=${MINUTES:-600}
 THREADS=${THREADS:-1}
-W=models/prior/weights
+INIT=${INIT:?the sketch weights to start from (see above)}
 mkdir -p "$RUN" "$STATE"
 
 $TS data build --out "$DATA" --frame object --shapes-per-category "${SHAPES:-120}" --views 6 \
@@ -35,6 +40,6 @@ $TS data build --out "$DATA" --frame object --shapes-per-category "${SHAPES:-120
     primitive_union blob creature
 
 $TS train sketch --preset cpu --data "$DATA" --out "$RUN" --checkpoint "$STATE/sketch.pt" \
-    --init "$W/object_frame_sketch_cpu.pt" --lr 1e-4 --lr-decay-epochs 1 --epochs 2 \
+    --init "$INIT" --lr 1e-4 --lr-decay-epochs 1 --epochs 2 \
     --batch-size 16 --checkpoint-every 200 --max-minutes "$MINUTES" --threads "$THREADS" \
     --seed 0
