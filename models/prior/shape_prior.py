@@ -35,6 +35,7 @@ from models.prior.frame import (
     search_grid,
 )
 from models.prior.networks import (
+    FrozenVoxelDecoder,
     NetworkPreset,
     ShapeNet,
     SketchNet,
@@ -149,6 +150,8 @@ class ShapePrior:
         self.device = torch.device(device)
         self.sketch_net = sketch_net.to(self.device).eval()
         self.shape_net = shape_net.to(self.device).eval()
+        self.decoder = FrozenVoxelDecoder(self.shape_net.decoder).to(self.device)
+        """The shape net's decoder as inference runs it (:class:`FrozenVoxelDecoder`)."""
 
     @classmethod
     def load(
@@ -271,7 +274,7 @@ class ShapePrior:
             known_t = torch.from_numpy(known)[None, None].to(self.device)
             normals = torch.where(known_t, measured_t, normals)
         latent = self.shape_net.encode(shape_input(depth, normals, mask))
-        probabilities = self.shape_net.decode(latent)[0].cpu().numpy()
+        probabilities = torch.sigmoid(self.decoder(latent))[0].cpu().numpy()
         seen_empty = seen_empty_voxels(grid, crop, pose_world_camera, seen, sensor_m)
         near = (depth * mask)[0, 0].cpu().numpy()
         return PriorPrediction(
@@ -336,8 +339,7 @@ class ShapePrior:
 
     def decode(self, latent: torch.Tensor) -> torch.Tensor:
         """Latent (200,) or (B, 200) -> probabilities (N, N, N) or (B, N, N, N) in the grid
-        frame [i, j, k]; differentiable in the latent (the network is in eval mode and frozen
-        only by the caller's optimiser choice)."""
+        frame [i, j, k]; differentiable in the latent, not in the network's weights."""
         batch = latent.dim() == 1
-        probabilities = self.shape_net.decode(latent[None] if batch else latent)
+        probabilities = torch.sigmoid(self.decoder(latent[None] if batch else latent))
         return probabilities[0] if batch else probabilities

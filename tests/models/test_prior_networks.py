@@ -8,6 +8,7 @@ import torch
 from models.prior.networks import (
     LATENT_DIM,
     PRESETS,
+    FrozenVoxelDecoder,
     NetworkPreset,
     ResNet18Encoder,
     ShapeNet,
@@ -57,6 +58,32 @@ def test_decode_is_differentiable_in_the_latent() -> None:
     latent = torch.randn(1, LATENT_DIM, requires_grad=True)
     shape.decode(latent)[0, 10:20, 10:20, 0:10].sum().backward()
     assert latent.grad is not None and float(latent.grad.abs().sum()) > 0
+
+
+@pytest.mark.parametrize("name", ["cpu", "cpu_wide"])
+def test_the_frozen_decoder_gives_the_decoders_logits_and_latent_gradient(name: str) -> None:
+    torch.manual_seed(0)
+    shape = ShapeNet(get_preset(name))
+    for layer in shape.decoder.modules():  # batch norm with statistics of its own, not 0 / 1
+        if isinstance(layer, torch.nn.BatchNorm3d):
+            layer.running_mean.uniform_(-0.5, 0.5)
+            layer.running_var.uniform_(0.5, 2.0)
+            layer.weight.data.uniform_(0.5, 1.5)
+            layer.bias.data.uniform_(-0.2, 0.2)
+    shape.eval()
+    frozen = FrozenVoxelDecoder(shape.decoder)
+    latent = torch.randn(2, LATENT_DIM)
+    with torch.no_grad():
+        expected = shape.decoder(latent)
+    assert torch.allclose(frozen(latent), expected, atol=1e-4 * float(expected.abs().max()))
+    weights = torch.rand_like(expected[:1])
+    gradients = []
+    for decoder in (shape.decoder, frozen):
+        variable = latent[:1].clone().requires_grad_(True)
+        (torch.sigmoid(decoder(variable)) * weights).sum().backward()
+        gradients.append(variable.grad)
+    assert torch.allclose(gradients[1], gradients[0], rtol=1e-4, atol=1e-6)
+    assert not any(buffer.requires_grad for buffer in frozen.buffers())
 
 
 def test_bad_presets_are_rejected() -> None:
