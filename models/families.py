@@ -214,6 +214,57 @@ def _creature(rng: np.random.Generator) -> Manifold:
     return solids.union(parts)
 
 
+def _vessel(rng: np.random.Generator) -> Manifold:
+    """A vessel with a handle: a mug or jug (open), or a teapot, kettle or watering can (lidded,
+    half of them with a spout).
+
+    Household objects are often revolved bodies with parts off the axis, which the revolved
+    family lacks: the handle and the spout are what single-view completion must guess.
+    """
+    height = rng.uniform(0.8, 2.2)
+    z = np.linspace(0.0, height, 20)
+    radii = np.convolve(_smooth_profile(rng, 24, 0.55, 1.0), np.ones(5) / 5, mode="valid")
+    body = solids.revolve(
+        [(0.0, 0.0), *zip(radii.tolist(), z.tolist(), strict=True), (0.0, height)]
+    )
+    parts = []
+    if rng.random() < 0.5:  # open: hollow from the top, as a mug or a jug
+        wall = rng.uniform(0.05, 0.12) * float(radii.min())
+        floor = rng.uniform(0.05, 0.15) * height
+        inner_radii = np.maximum(radii - wall, 0.5 * wall)[z > floor]
+        inner = [(0.0, floor), *zip(inner_radii.tolist(), z[z > floor].tolist(), strict=True)]
+        inner += [(float(inner_radii[-1]), height + 0.1), (0.0, height + 0.1)]
+        body = body - solids.revolve(inner)
+    else:  # lidded: a knob on top, and a spout half the time
+        knob = rng.uniform(0.08, 0.2)
+        parts.append(
+            solids.ellipsoid(knob, knob, 0.7 * knob, segments=24).translate((0, 0, height))
+        )
+        if rng.random() < 0.5:
+            z_spout = rng.uniform(0.2, 0.5) * height
+            r_spout = float(np.interp(z_spout, z, radii))
+            length = rng.uniform(0.4, 0.9)
+            rise = rng.uniform(0.5, 1.5)
+            start = np.array([-0.7 * r_spout, 0.0, z_spout])
+            end = np.array([-r_spout - length, 0.0, z_spout + rise * length])
+            parts.append(_limb(start, end, rng.uniform(0.06, 0.14)))
+    # The handle: a C-shaped tube arc whose ends sink into the body's side (+x).
+    z_low, z_high = np.sort(rng.uniform(0.15, 0.9, 2)) * height
+    z_high = max(z_high, z_low + 0.25 * height)
+    span = (z > z_low - 0.05) & (z < z_high + 0.05)
+    major = (z_high - z_low) / 2
+    degrees = rng.uniform(200.0, 250.0)
+    minor = rng.uniform(0.04, 0.1)
+    # Stretched along x so that it stands out of the body by 0.3-0.8 of the body's radius.
+    reach = float(radii[span].max() - radii[span].min()) + rng.uniform(0.3, 0.8) * float(
+        radii.max()
+    )
+    stretch = max(1.0, reach / (major + minor))
+    handle = solids.ring_arc(major, minor, degrees).scale((stretch, 1.0, 1.0))
+    parts.append(handle.translate((float(radii[span].min()), 0.0, (z_low + z_high) / 2)))
+    return solids.union([body, *parts])
+
+
 _FAMILIES: dict[str, Callable[[np.random.Generator], Manifold]] = {
     "superquadric": _superquadric,
     "revolved": _revolved,
@@ -223,6 +274,7 @@ _FAMILIES: dict[str, Callable[[np.random.Generator], Manifold]] = {
     "blob": _blob,
     "fruit": _fruit,
     "creature": _creature,
+    "vessel": _vessel,
 }
 
 FAMILIES: tuple[str, ...] = tuple(_FAMILIES)

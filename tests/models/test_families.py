@@ -33,3 +33,10 @@ def test_held_out_families_are_families_and_unknown_ones_are_refused() -> None:
     assert set(HELD_OUT_FAMILIES) < set(FAMILIES)
     with pytest.raises(ShapeError, match="unknown shape family 'teapot'"):
         make_family_shape("teapot", np.random.default_rng(0))
+
+
+def test_a_vessel_has_its_handle_standing_out_of_its_body() -> None:
+    # The handle (and a spout) stick out along x from a revolved body, round in y.
+    for seed in range(8):
+        mesh = make_family_shape("vessel", np.random.default_rng((5, seed)))
+        assert mesh.extents[0] > 1.08 * mesh.extents[1]
