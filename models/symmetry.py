@@ -42,6 +42,8 @@ AXIS_TURNS = (60.0, 120.0, 180.0, 240.0, 300.0)
 """A rotation-symmetric candidate's copies of the seen points (degrees about the axis)."""
 MAX_REFUTED = 0.08
 """A candidate with more of its points in seen-empty space than this fraction is rejected."""
+COARSE_KEPT = 4
+"""Coarse candidates (the least contradicted) searched finer before one is chosen."""
 VIOLATION_NOISE_M = 0.002
 """A copy counts as standing in free space by how far it is in front of the seen surface, less
 the depth noise (Kinect v2: 1.5 mm at 0.6-0.8 m)."""
@@ -103,46 +105,76 @@ def complete_by_symmetry(camera: SurfaceObservations, view: CameraView) -> Symme
         normal = np.array([math.cos(angle), math.sin(angle), 0.0])
         return ("plane", centre + offset * normal, normal)
 
-    def choose(candidates: list[Candidate]) -> Candidate | None:
-        best, best_cost = None, math.inf
-        for candidate in candidates:
-            verdict = view.judge(copies_of(*candidate))
-            refuted, hidden = verdict.empty, verdict.hidden & ~verdict.empty
-            if refuted.mean() > MAX_REFUTED or hidden.mean() < MIN_HIDDEN:
-                continue
-            # How far the copies stand in free space, graded: a plane ahead of the true one
-            # pushes copies out in front of the seen surface, one behind it pushes the copies of
-            # the outline off the object, in front of the table.
-            ahead = verdict.in_front_m - VIOLATION_NOISE_M
-            cost = float(np.clip(ahead, 0.0, VIOLATION_CAP_M).mean())
-            if cost < best_cost:
-                best, best_cost = candidate, cost
-        return best
-
-    # A coarse search (planes every 15 degrees, planes and axes a ninth of the width apart) ...
     step = offsets[1] - offsets[0]
-    angles = [math.pi * k / PLANE_ANGLES for k in range(PLANE_ANGLES)]
-    coarse = [plane(a, o) for a in angles for o in offsets]
-    coarse += [("axis", centre + np.array([dx, dy, 0.0]), up) for dx in offsets for dy in offsets]
-    found = choose(coarse)
-    if found is None:
-        return None
-    # ... then a fine one around its choice (a quarter step, 2.5 degrees).
-    kind, point, direction = found
-    fine_steps = step * np.arange(-4, 5) / 4.0
-    if kind == "plane":
+
+    def judged(candidates: list[Candidate]) -> NDArray[np.float64]:
+        """(refuted fraction, hidden fraction, cost) of each candidate, one row each: the cost
+        is how far the copies stand in free space, graded: a plane ahead of the true one pushes
+        copies out in front of the seen surface, one behind it pushes the copies of the outline
+        off the object, in front of the table. One projection per kind of candidate."""
+        scores = np.zeros((len(candidates), 3))
+        for kind in ("plane", "axis"):
+            rows = [i for i, candidate in enumerate(candidates) if candidate[0] == kind]
+            if not rows:
+                continue
+            verdict = view.judge(np.stack([copies_of(*candidates[i]) for i in rows]))
+            refuted, hidden = verdict.empty, verdict.hidden & ~verdict.empty
+            ahead = np.clip(verdict.in_front_m - VIOLATION_NOISE_M, 0.0, VIOLATION_CAP_M)
+            scores[rows] = np.column_stack(
+                [refuted.mean(axis=1), hidden.mean(axis=1), ahead.mean(axis=1)]
+            )
+        return scores
+
+    def refined(candidate: Candidate, scale: float) -> list[Candidate]:
+        """Candidates around ``candidate``: ``scale`` quarter steps apart, planes ``scale`` x 2.5
+        degrees apart."""
+        kind, point, direction = candidate
+        fine_steps = scale * step * np.arange(-4, 5) / 4.0
+        if kind == "axis":
+            return [
+                ("axis", point + np.array([dx, dy, 0.0]), up)
+                for dx in fine_steps
+                for dy in fine_steps
+            ]
         angle = math.atan2(direction[1], direction[0])
         offset = float((point - centre) @ direction)
-        fine = [
-            plane(angle + math.radians(d), offset + o)
+        return [
+            plane(angle + math.radians(scale * d), offset + o)
             for d in (-7.5, -5.0, -2.5, 0.0, 2.5, 5.0, 7.5)
             for o in fine_steps
         ]
-    else:
-        fine = [
-            ("axis", point + np.array([dx, dy, 0.0]), up) for dx in fine_steps for dy in fine_steps
-        ]
-    found = choose(fine) or found
+
+    def best_of(candidates: list[Candidate]) -> Candidate | None:
+        """Of the candidates that pass (few refuted, enough hidden), the best supported: the
+        most copies on the seen surface, less how far they stand in free space. Support tells
+        the true symmetry from one that merely goes unrefuted: a plane behind a bottle, facing
+        the camera, mirrors its front out of sight and nothing contradicts it, but no copy
+        lands on anything seen."""
+        scores = judged(candidates)
+        passing = (scores[:, 0] <= MAX_REFUTED) & (scores[:, 1] >= MIN_HIDDEN)
+        if not passing.any():
+            return None
+        support = 1.0 - scores[:, 0] - scores[:, 1] - scores[:, 2] / VIOLATION_CAP_M
+        return candidates[int(np.argmax(np.where(passing, support, -np.inf)))]
+
+    # A coarse search (planes every 15 degrees, planes and axes a ninth of the width apart)
+    # ranks the candidates by how little they contradict; the best few are searched finer (a
+    # quarter step, 2.5 degrees) before any is judged: on an elongated object (an animal seen
+    # from the side) a plane 7.5 degrees off the true one sends the copies of its ends into
+    # free space, so no coarse candidate passes. The choice is searched finer once more (a
+    # sixteenth of a step, 0.6 degrees): a plane a few millimetres off moves its copies twice
+    # as far.
+    angles = [math.pi * k / PLANE_ANGLES for k in range(PLANE_ANGLES)]
+    coarse = [plane(a, o) for a in angles for o in offsets]
+    coarse += [("axis", centre + np.array([dx, dy, 0.0]), up) for dx in offsets for dy in offsets]
+    scores = judged(coarse)
+    rank = scores[:, 0] + scores[:, 2] / VIOLATION_CAP_M
+    ranked = [i for i in np.argsort(rank, kind="stable") if scores[i, 1] >= MIN_HIDDEN]
+    fine = [c for i in ranked[:COARSE_KEPT] for c in [coarse[i], *refined(coarse[i], 1.0)]]
+    found = best_of(fine) if fine else None
+    if found is None:
+        return None
+    found = best_of([found, *refined(found, 0.25)]) or found
     kind, point, direction = found
     copies = copies_of(kind, point, direction)
     if kind == "plane":
