@@ -235,8 +235,9 @@ class VoxelDecoder(nn.Module):
 
 def _transposed_conv_k4s2(volume: Tensor, weight: Tensor) -> Tensor:
     """``F.conv_transpose3d(volume, weight, stride=2, padding=1)`` for a 4^3 kernel, as one matrix
-    product and an overlap-add of its 64 taps: on one CPU thread this is ~3x faster than torch's
-    transposed convolution at the decoder's channel counts (docs/touch.md, "Cost")."""
+    product and an overlap-add of its 64 taps. On one CPU thread, with one channel out (the
+    decoder's last layer, 32^3 -> 64^3), this is ~3x faster than torch's; with more channels out
+    the overlap-add costs more than torch's own."""
     batch, channels_in, n = volume.shape[0], volume.shape[1], volume.shape[-1]
     channels_out = weight.shape[1]
     taps = weight.reshape(channels_in, channels_out * 64).t() @ volume.reshape(
@@ -269,9 +270,10 @@ class FrozenVoxelDecoder(nn.Module):
     same logits (to float rounding), differentiable in the latent only, faster on a CPU.
 
     Batch norm is folded into the transposed convolutions before it, the first one (from a
-    1^3 latent) is a matrix product, the others run as :func:`_transposed_conv_k4s2`. Why:
-    every touch's global step decodes the latent and its gradient 16 times, and torch's
-    transposed convolutions with few channels took most of it (docs/touch.md, "Cost").
+    1^3 latent) is a matrix product and the last one (one channel out) runs as
+    :func:`_transposed_conv_k4s2`. Why: every touch's global step decodes the latent and its
+    gradient 16 times, and torch's last transposed convolution took half of each decode
+    (docs/touch.md, "Cost").
     """
 
     def __init__(self, decoder: VoxelDecoder) -> None:
