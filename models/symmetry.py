@@ -6,8 +6,9 @@ are mirrored about candidate vertical planes (and turned about candidate vertica
 candidate is refuted by mirrored points that land where the camera saw empty space (in front of
 the measured surface, or on a ray that reached the table: :class:`models.prior.carving.CameraView`).
 Of the candidates with few refuted points that put enough points out of sight (they complete
-something), the one whose copies stand least far into free space wins; its copies that are not
-refuted and lie out of sight become weaker surface observations (source -2) of the fused field.
+something), the best supported wins: the most copies landing on the seen surface, less how far
+they stand into free space. Its copies that are not refuted and lie out of sight become weaker
+surface observations (source -2) of the fused field.
 """
 
 from __future__ import annotations
