@@ -6,9 +6,8 @@ are mirrored about candidate vertical planes (and turned about candidate vertica
 candidate is refuted by mirrored points that land where the camera saw empty space (in front of
 the measured surface, or on a ray that reached the table: :class:`models.prior.carving.CameraView`).
 Of the candidates with few refuted points that put enough points out of sight (they complete
-something), the best supported wins: the most copies landing on the seen surface, less how far
-they stand into free space. Its copies that are not refuted and lie out of sight become weaker
-surface observations (source -2) of the fused field.
+something), the one whose copies stand least far into free space wins; its copies that are not
+refuted and lie out of sight become weaker surface observations (source -2) of the fused field.
 """
 
 from __future__ import annotations
@@ -146,17 +145,13 @@ def complete_by_symmetry(camera: SurfaceObservations, view: CameraView) -> Symme
         ]
 
     def best_of(candidates: list[Candidate]) -> Candidate | None:
-        """Of the candidates that pass (few refuted, enough hidden), the best supported: the
-        most copies on the seen surface, less how far they stand in free space. Support tells
-        the true symmetry from one that merely goes unrefuted: a plane behind a bottle, facing
-        the camera, mirrors its front out of sight and nothing contradicts it, but no copy
-        lands on anything seen."""
+        """Of the candidates that pass (few refuted, enough hidden), the one whose copies stand
+        least far in free space."""
         scores = judged(candidates)
         passing = (scores[:, 0] <= MAX_REFUTED) & (scores[:, 1] >= MIN_HIDDEN)
         if not passing.any():
             return None
-        support = 1.0 - scores[:, 0] - scores[:, 1] - scores[:, 2] / VIOLATION_CAP_M
-        return candidates[int(np.argmax(np.where(passing, support, -np.inf)))]
+        return candidates[int(np.argmin(np.where(passing, scores[:, 2], np.inf)))]
 
     # A coarse search (planes every 15 degrees, planes and axes a ninth of the width apart)
     # ranks the candidates by how little they contradict; the best few are searched finer (a

@@ -173,8 +173,8 @@ def _animal(yaw_deg: float) -> trimesh.Trimesh:
 def test_an_elongated_animal_is_completed_by_its_mid_plane(yaw_deg: float) -> None:
     """With its mid-plane between two of the coarse search's angles (the worst case, 7.5
     degrees from both), the plane is found and its copies fill the far flank. (At 37.5 degrees
-    its thin legs put 8.1 % of the copies in seen-empty space, and it is rejected: 8 % is the
-    limit.)"""
+    its thin legs put more than the allowed 8 % of every candidate's copies in seen-empty
+    space, and none is used.)"""
     animal = _animal(yaw_deg)
     _, depth = _frame(animal)
     points = object_depth_points(depth, FULL, POSE, GRID)
