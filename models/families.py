@@ -77,6 +77,18 @@ def _smooth_profile(rng: np.random.Generator, points: int, low: float, high: flo
     return np.interp(np.linspace(0, 1, points), np.linspace(0, 1, len(knots)), knots)
 
 
+def _hollowed(
+    body: Manifold, radii: np.ndarray, z: np.ndarray, wall: float, floor: float
+) -> Manifold:
+    """A revolved ``body`` (``radii`` at heights ``z``) hollowed from the top: a wall ``wall``
+    thick and a floor at height ``floor``."""
+    height = float(z[-1])
+    inner_radii = np.maximum(radii - wall, 0.5 * wall)[z > floor]
+    inner = [(0.0, floor), *zip(inner_radii.tolist(), z[z > floor].tolist(), strict=True)]
+    inner += [(float(inner_radii[-1]), height + 0.1), (0.0, height + 0.1)]
+    return body - solids.revolve(inner)
+
+
 def _revolved(rng: np.random.Generator) -> Manifold:
     """A random solid of revolution (vase, bottle, spool, cup); a third are hollow vessels."""
     height = rng.uniform(0.5, 2.0)
@@ -86,11 +98,7 @@ def _revolved(rng: np.random.Generator) -> Manifold:
     body = solids.revolve(outline)
     if rng.random() < 1 / 3:  # hollow from the top, with a floor and a wall
         wall = rng.uniform(0.04, 0.12) * float(radii.min())
-        floor = rng.uniform(0.05, 0.2) * height
-        inner_radii = np.maximum(radii - wall, 0.5 * wall)[z > floor]
-        inner = [(0.0, floor), *zip(inner_radii.tolist(), z[z > floor].tolist(), strict=True)]
-        inner += [(float(inner_radii[-1]), height + 0.1), (0.0, height + 0.1)]
-        body = body - solids.revolve(inner)
+        body = _hollowed(body, radii, z, wall, rng.uniform(0.05, 0.2) * height)
     return body
 
 
@@ -230,11 +238,7 @@ def _vessel(rng: np.random.Generator) -> Manifold:
     parts = []
     if rng.random() < 0.5:  # open: hollow from the top, as a mug or a jug
         wall = rng.uniform(0.05, 0.12) * float(radii.min())
-        floor = rng.uniform(0.05, 0.15) * height
-        inner_radii = np.maximum(radii - wall, 0.5 * wall)[z > floor]
-        inner = [(0.0, floor), *zip(inner_radii.tolist(), z[z > floor].tolist(), strict=True)]
-        inner += [(float(inner_radii[-1]), height + 0.1), (0.0, height + 0.1)]
-        body = body - solids.revolve(inner)
+        body = _hollowed(body, radii, z, wall, rng.uniform(0.05, 0.15) * height)
     else:  # lidded: a knob on top, and a spout half the time
         knob = rng.uniform(0.08, 0.2)
         parts.append(
