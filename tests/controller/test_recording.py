@@ -69,11 +69,18 @@ def image_size(values: dict[str, Any], archetype: str) -> tuple[int, int]:
 
 
 def assert_touches_recorded(
-    rrd: Path, touches: list[dict[str, Any]], config: Config, *, refined: int
+    rrd: Path,
+    touches: list[dict[str, Any]],
+    config: Config,
+    *,
+    refined: int,
+    killed: bool = False,
 ) -> None:
     """The GelSight image, height map, contact point and target of each touch listed in
     touches.jsonl are in the recording at that touch, and the metrics of the first ``refined``
-    (the refine step after the last touch logs its metrics later)."""
+    (the refine step after the last touch logs its metrics later). ``killed``: the session was
+    killed, and a surface still being drawn in the background then (``log_estimate``: derived
+    data, recomputable from the touches) may be missing, so only the first is required."""
     rows = rows_by_touch(rrd)
     numbers = {t["touch"] for t in touches}
     sensor = config.sensor
@@ -97,7 +104,8 @@ def assert_touches_recorded(
     assert set(rows["metrics/voxels_flipped"]) >= set(range(1, refined + 1))
     # The surfaces: vision's at touch 0, the current one from then on at each refine.
     assert set(rows["world/estimate/vision"]) == {0}
-    assert set(rows["world/estimate/current"]) >= set(range(refined + 1))
+    surfaces = {0} if killed else set(range(refined + 1))
+    assert set(rows["world/estimate/current"]) >= surfaces
     assert set(rows["gelsight/image"]) == numbers  # nothing of a touch that did not complete
 
 
@@ -331,4 +339,4 @@ def test_sigkill_after_touch_2_of_3_keeps_touches_recording_and_marks_interrupte
     assert summary["request"]["max_touches"] == 3
     assert summary["recovery"]["recording"] == "rewritten with a footer"
     assert rerun_verify(rrd).returncode == 0
-    assert_touches_recorded(rrd, touches, config, refined=1)
+    assert_touches_recorded(rrd, touches, config, refined=1, killed=True)
