@@ -228,10 +228,13 @@ class ModelsConfig:
     global_camera_constraints: bool = True
     """Whether the camera's depth points constrain the global update's latent fit too (the fused
     correction passes through them in any case)."""
-    fusion_policy: Literal["variance", "window"] = "variance"
+    fusion_policy: Literal["committee", "variance", "window"] = "committee"
     """What the active policy reads with the fused update: the fused field's P(inside) with its
     uncertainty ("variance": touched regions are known), or with the prior's uncertainty
-    everywhere ("window": the paper's |v - 0.5| policy on the fused shape)."""
+    everywhere ("window": the paper's |v - 0.5| policy on the fused shape). "committee" (the
+    default): "variance", averaged with the global update's fit where the guard has not taken
+    it, so windows where the two shapes disagree are uncertain and the next touch tests the fit
+    (models.touch.global_fit.committee_probabilities; docs/touch.md, "The committee")."""
     refine_learning_rate: float = 3e-3
     """Adam's step size on the latent (the paper: 1e-3; docs/explore.md has the measured
     reason for 3e-3 together with the anchor)."""

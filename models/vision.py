@@ -57,7 +57,7 @@ class VisionSettings:
     """Complete the unseen side by the best-supported symmetry (RGB-D only), when one is."""
     use_variance: bool = True
     """The fused field's P(inside) with its uncertainty (``FusedShape.probabilities``), as the
-    session's ``fusion_policy = "variance"`` reads it."""
+    session's ``fusion_policy = "variance"`` (or ``"committee"``) reads it."""
 
 
 @dataclass

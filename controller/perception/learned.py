@@ -59,7 +59,13 @@ from models.touch.constraints import (
     pad_grid_world,
 )
 from models.touch.fused import FusedShape, FusionSettings
-from models.touch.global_fit import GlobalSettings, GlobalState, ShapeMean, global_step
+from models.touch.global_fit import (
+    GlobalSettings,
+    GlobalState,
+    ShapeMean,
+    committee_probabilities,
+    global_step,
+)
 from models.touch.observations import SurfaceObservations, observations_of
 from models.touch.policy import (
     above_table_filter,
@@ -223,7 +229,15 @@ class LearnedPerception:
         # What the touches measured is known: the policy sees it written into the estimate, so
         # the windows they answered are confident and are not chosen again.
         grid = estimate.grid
-        known = direct_edit(estimate.probabilities, self.constraints(outcomes, grid))
+        policy_probabilities = estimate.probabilities
+        if self.config.models.fusion_policy == "committee" and estimate.global_state is not None:
+            policy_probabilities = committee_probabilities(
+                estimate.global_state,
+                estimate.probabilities,
+                grid,
+                self.config.models.fusion_prior_std_m,
+            )
+        known = direct_edit(policy_probabilities, self.constraints(outcomes, grid))
         filters = [] if feasible is None else [feasible]
         feasible = all_of(
             *filters,
@@ -386,11 +400,9 @@ class LearnedPerception:
 
     def _fused_probabilities(self, fused: FusedShape, grid: VoxelGrid) -> np.ndarray:
         """What the policy, the safety bound and voxels.npz read: P(inside) with the field's
-        uncertainty (``fusion_policy = "variance"``), or with the prior's everywhere
-        ("window": the paper's |v - 0.5| policy on the fused shape, touched or not)."""
-        return fused.probabilities(
-            grid, use_variance=self.config.models.fusion_policy == "variance"
-        )
+        uncertainty (``fusion_policy = "variance"`` or ``"committee"``), or with the prior's
+        everywhere ("window": the paper's |v - 0.5| policy on the fused shape, touched or not)."""
+        return fused.probabilities(grid, use_variance=self.config.models.fusion_policy != "window")
 
     @property
     def vision_settings(self) -> VisionSettings:
@@ -511,7 +523,7 @@ def vision_settings(
     fusion = FusionSettings(
         support_m=models.fusion_support_m, prior_std_m=models.fusion_prior_std_m, pose_fit=pose_fit
     )
-    variance = models.fusion_policy == "variance"
+    variance = models.fusion_policy != "window"
     return VisionSettings(fusion=fusion, symmetry=symmetry, use_variance=variance)
 
 

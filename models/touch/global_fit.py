@@ -33,6 +33,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 from numpy.typing import NDArray
+from scipy.special import ndtr
 
 from models.geometry import VoxelGrid
 from models.touch.constraints import TouchResult, VoxelConstraints, constraints_from_touches
@@ -284,3 +285,20 @@ def global_step(
     )
     mean = candidate if taken else state.mean
     return GlobalState(state.vision, mean, candidate, (*state.decisions, decision))
+
+
+def committee_probabilities(
+    state: GlobalState, probabilities: NDArray[np.float32], grid: VoxelGrid, std_m: float
+) -> NDArray[np.float32]:
+    """What the active policy reads when the fit to every touch (the candidate) is not the mean:
+    the mean of ``probabilities`` (the estimate's P(inside) on ``grid``) and the candidate's
+    own, Phi(-d / ``std_m``) of its posed signed distance d, cut by the table. Where the two
+    disagree the mixture is near 0.5, so the least confident window is where the next touch
+    tells them apart: the touch the guard's held-out test needs (query by committee). Where
+    the candidate is the mean, ``probabilities`` unchanged."""
+    if state.candidate is state.mean:
+        return probabilities
+    centres = grid.voxel_centres_world()
+    distance = np.maximum(state.candidate.posed_distance()(centres), -centres[..., 2])
+    candidate = ndtr(-distance / std_m)
+    return (0.5 * (probabilities + candidate)).astype(np.float32)

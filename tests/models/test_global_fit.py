@@ -19,11 +19,13 @@ from models.touch.global_fit import (
     GlobalSettings,
     GlobalState,
     ShapeMean,
+    committee_probabilities,
     global_step,
     prediction_error_m,
     seen_empty_fraction,
 )
 from models.touch.observations import SurfaceObservations, observations_of
+from models.touch.policy import above_table_filter, select_touch
 from models.touch.posed_prior import Pose, posed_grid
 from tests.models.test_vision import FULL, GRID, POSE, _frame
 
@@ -163,3 +165,29 @@ def test_the_fit_stops_where_it_stops_improving(bottle_vision, monkeypatch):
     for settings in (GlobalSettings(), GlobalSettings(patience=3)):
         global_fit.fit_mean(prior.decode, vision, latent, touches, observations, settings)
     assert seen == [None, 3]
+
+
+def _ball(grid: VoxelGrid, centre_world: np.ndarray, radius_m: float) -> np.ndarray:
+    """P(inside) of a ball, blurred over a voxel."""
+    distance = np.linalg.norm(grid.voxel_centres_world() - centre_world, axis=-1) - radius_m
+    return (1.0 / (1.0 + np.exp(distance / grid.voxel_size_m))).astype(np.float32)
+
+
+def test_the_committee_policy_touches_where_the_fit_and_the_mean_disagree():
+    """The mean is a ball; the untrusted fit is the same ball 12 mm along the world's y. The
+    ball alone is equally uncertain all round; the committee's least confident window is on a
+    side the two shapes disagree on (facing +y or -y), and with the fit taken as the mean
+    nothing changes."""
+    centre, radius, shift = np.array([0.0, 0.0, 0.06]), 0.04, np.array([0.0, 0.012, 0.0])
+    ball = _ball(GRID, centre, radius)
+    mean = ShapeMean.of(torch.zeros(1, 200), ball, GRID)
+    moved = ShapeMean.of(torch.zeros(1, 200), _ball(GRID, centre + shift, radius), GRID)
+    state = GlobalState(mean, mean, moved)
+    mixed = committee_probabilities(state, ball, GRID, 0.004)
+    candidate = select_touch(mixed, GRID, above_table_filter(0.06))
+    assert candidate is not None
+    along_y = abs(candidate.target_world[1] - centre[1] - 0.006)
+    assert along_y > 0.6 * radius, candidate.target_world
+    assert abs(candidate.approach_direction_world[1]) > 0.7
+    taken = GlobalState(mean, moved, moved)
+    assert committee_probabilities(taken, ball, GRID, 0.004) is ball
