@@ -228,6 +228,11 @@ class ModelsConfig:
     global_camera_constraints: bool = True
     """Whether the camera's depth points constrain the global update's latent fit too (the fused
     correction passes through them in any case)."""
+    stop_constraints: bool = True
+    """Whether a touch the fingers' force stopped without an imprint on the gel tells the latent
+    fits (and the guard) that the object reaches one of the tool's leading points there
+    (``drivers.tool.ToolModel.leading_points_pad``). Off: only the sweep before the stop counts,
+    as free space."""
     fusion_policy: Literal["committee", "variance", "window"] = "committee"
     """What the active policy reads with the fused update: the fused field's P(inside) with its
     uncertainty ("variance": touched regions are known), or with the prior's uncertainty

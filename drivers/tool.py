@@ -100,3 +100,39 @@ class ToolModel:
                 (window_depth, sensor.pad_height_mm * 1e-3, sensor.pad_width_mm * 1e-3),
             ),
         ]
+
+    def leading_points_pad(self, spacing_m: float) -> NDArray[np.float64]:
+        """Where an object can first meet the sensor's finger as it moves along the pad's +z
+        (the fingers opening), pad frame, metres (M, 3): the gel's surface (z = 0, the pad),
+        then the housing's front around it (z = -``housing_recess_m``), then the sensor-side
+        finger's front beyond the housing; each face without the part the faces ahead of it
+        cover. A touch stopped by force without an imprint met the object at one of them."""
+        pad_from_tcp = np.linalg.inv(self.pose_tcp_pad(0.0))
+        boxes = {box.name: box for box in self.rigid_boxes(0.0)}
+        half_pad = np.array([self.sensor.pad_width_mm, self.sensor.pad_height_mm]) * 1e-3 / 2
+        faces = [(0.0, -half_pad, half_pad)]  # (pad z, (x, y) min, (x, y) max), front first
+        for name in ("gelsight_housing", "finger_sensor_side"):
+            box = boxes[name]
+            signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
+            corners_tcp = box.pose_tcp_box[:3, 3] + signs * box.half_extents_m
+            corners = corners_tcp @ pad_from_tcp[:3, :3].T + pad_from_tcp[:3, 3]
+            faces.append((corners[:, 2].max(), corners[:, :2].min(0), corners[:, :2].max(0)))
+        points = []
+        for index, (z, low, high) in enumerate(faces):
+            axes = [
+                np.linspace(
+                    low[a], high[a], max(2, int(np.ceil((high[a] - low[a]) / spacing_m)) + 1)
+                )
+                for a in range(2)
+            ]
+            x, y = (grid.ravel() for grid in np.meshgrid(*axes, indexing="ij"))
+            covered = np.zeros(x.shape, bool)
+            for _, ahead_low, ahead_high in faces[:index]:
+                covered |= (
+                    (x > ahead_low[0])
+                    & (x < ahead_high[0])
+                    & (y > ahead_low[1])
+                    & (y < ahead_high[1])
+                )
+            points.append(np.column_stack([x[~covered], y[~covered], np.full((~covered).sum(), z)]))
+        return np.concatenate(points)

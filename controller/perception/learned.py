@@ -35,7 +35,8 @@ from controller.perception.protocol import (
 from controller.request import ExploreRequest
 from drivers.base import RGBDFrame
 from drivers.factory import Devices
-from models.geometry import VoxelGrid, make_transform
+from drivers.tool import ToolModel
+from models.geometry import VoxelGrid, make_transform, transform_points
 from models.prior.auto import AUTO
 from models.prior.carving import SEEN_EMPTY_PROBABILITY
 from models.prior.networks import LATENT_DIM
@@ -94,6 +95,7 @@ FREE_RAY_SPACING_M = 0.002
 TABLE_CONTACT_M = 0.002
 """Contact points this close to the table top are the table's (on the bench a random touch can
 press the gel onto the table beside a flat object)."""
+STOP_POINT_SPACING_M = 0.002
 RANDOM_POLICY_TRIES = 50
 EFFICIENT_CANDIDATES = 4
 """How many allowed windows, least confident first, the efficient policy times with the planner
@@ -135,6 +137,9 @@ class LearnedPerception:
         self._reconstructors: dict[int, TactileReconstructor] = {}
         sensor = config.sensor
         self.pad_size_m = (sensor.pad_width_mm * 1e-3, sensor.pad_height_mm * 1e-3)
+        self.leading_points_pad = ToolModel(config.gripper, sensor).leading_points_pad(
+            STOP_POINT_SPACING_M
+        )
 
     def prior(self, name: str) -> ShapePrior:
         """A named prior, loaded once."""
@@ -505,13 +510,21 @@ class LearnedPerception:
         return self._reconstructors[key]
 
     def _sweep(self, measurement: TouchMeasurement) -> TouchResult:
-        """The pad's sweep from the approach start to where it stopped: all empty."""
+        """The pad's sweep from the approach start to where it stopped: all empty. Stopped by
+        force (``stop_constraints``), the object also reaches one of the tool's leading points
+        at the stop, unless some of them reached the table, which may have stopped it."""
         end = measurement.pose_world_pad
         start = make_transform(end[:3, :3], measurement.pad_start_world)
         spacing = FREE_RAY_SPACING_M
+        stop = np.zeros((0, 3))
+        if measurement.contact and self.config.models.stop_constraints:
+            stop = transform_points(end, self.leading_points_pad)
+            if np.any(stop[:, 2] < TABLE_CONTACT_M):
+                stop = np.zeros((0, 3))
         return TouchResult.from_miss(
             pad_grid_world(start, self.pad_size_m, spacing),
             pad_grid_world(end, self.pad_size_m, spacing),
+            stop,
         )
 
 

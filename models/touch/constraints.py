@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -67,6 +67,10 @@ class TouchResult:
     ray_starts_world: FloatArray
     ray_ends_world: FloatArray
     ray_hit: NDArray[np.bool_]
+    stop_points_world: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    """Of a stroke the fingers' force stopped without an imprint: the points of the tool where
+    it can have met the object (``drivers.tool.ToolModel.leading_points_pad`` at the stop).
+    The object reaches at least one of them; empty for any other touch."""
 
     @property
     def is_miss(self) -> bool:
@@ -111,9 +115,14 @@ class TouchResult:
 
     @classmethod
     def from_miss(
-        cls, segment_starts_world: ArrayLike, segment_ends_world: ArrayLike
+        cls,
+        segment_starts_world: ArrayLike,
+        segment_ends_world: ArrayLike,
+        stop_points_world: ArrayLike = (),
     ) -> TouchResult:
-        """A touch whose full stroke met nothing: each swept segment start -> end is empty.
+        """A touch whose stroke met nothing under the gel: each swept segment start -> end is
+        empty. ``stop_points_world``: where a force stopped it, the tool's points that can have
+        met the object (``TouchResult.stop_points_world``).
 
         All segments must be parallel (one rigid pad moving straight); see :func:`pad_grid_world`
         for sampling the pad.
@@ -123,7 +132,7 @@ class TouchResult:
         if starts.shape != ends.shape or len(starts) == 0:
             raise ValueError("need matching, non-empty (N, 3) segment starts and ends")
         direction = _unit((ends - starts).mean(axis=0))
-        return cls(direction, starts, ends, np.zeros(len(starts), bool))
+        return cls(direction, starts, ends, np.zeros(len(starts), bool), _points(stop_points_world))
 
 
 def pad_grid_world(
@@ -256,12 +265,15 @@ class VoxelConstraints:
     """Voxels a set of touches proved empty or occupied, as sorted flat indices into N^3.
 
     Flat index = (i * N + j) * N + k, i.e. C order of a [i, j, k] volume. ``empty`` and
-    ``occupied`` are disjoint (occupied wins, see the module docstring).
+    ``occupied`` are disjoint (occupied wins, see the module docstring). ``any_occupied``: groups
+    of voxels of which at least one is occupied (a stop by force without an imprint), none of
+    them known empty.
     """
 
     resolution: int
     empty: IntArray
     occupied: IntArray
+    any_occupied: tuple[IntArray, ...] = ()
 
     @classmethod
     def none(cls, resolution: int) -> VoxelConstraints:
@@ -288,7 +300,10 @@ class VoxelConstraints:
             raise ValueError("cannot merge constraints of different resolutions")
         occupied = np.union1d(self.occupied, other.occupied)
         empty = np.setdiff1d(np.union1d(self.empty, other.empty), occupied, assume_unique=True)
-        return VoxelConstraints(self.resolution, empty, occupied)
+        groups = (np.setdiff1d(g, empty) for g in (*self.any_occupied, *other.any_occupied))
+        return VoxelConstraints(
+            self.resolution, empty, occupied, tuple(g for g in groups if len(g))
+        )
 
     def empty_ijk(self) -> IntArray:
         return np.stack(np.unravel_index(self.empty, (self.resolution,) * 3), axis=1)
@@ -297,7 +312,7 @@ class VoxelConstraints:
         return np.stack(np.unravel_index(self.occupied, (self.resolution,) * 3), axis=1)
 
     def __len__(self) -> int:
-        return len(self.empty) + len(self.occupied)
+        return len(self.empty) + len(self.occupied) + len(self.any_occupied)
 
 
 def touch_constraints(
@@ -318,6 +333,8 @@ def touch_constraints(
     the ray's end are empty (the pad stopped there, or the stroke ended: what lies beyond is
     unknown).
     Rays whose end points fall in the same ``ray_spacing_voxels`` cell are traversed once.
+    A stop without an imprint (``TouchResult.stop_points_world``) adds one ``any_occupied``
+    group: the voxels holding its points ``occupied_depth_voxels`` beyond them along the ray.
     """
     starts = grid.world_to_voxel(touch.ray_starts_world)
     ends = grid.world_to_voxel(touch.ray_ends_world)
@@ -339,7 +356,16 @@ def touch_constraints(
     # of a ray (and, for an oblique ray, others) can have its centre beyond it, where a stop
     # proves nothing (a thin part under a pad stopped by force had 10 voxels wrongly emptied).
     beyond_end = ((voxels + 0.5) - ends[ray]) @ direction_voxel >= 0
-    return VoxelConstraints.from_voxels(resolution, voxels[~beyond_end], occupied)
+    constraints = VoxelConstraints.from_voxels(resolution, voxels[~beyond_end], occupied)
+    if len(touch.stop_points_world) == 0:
+        return constraints
+    stop = grid.world_to_voxel(touch.stop_points_world) + occupied_depth_voxels * direction_voxel
+    stop_voxels = np.floor(stop).astype(np.int64)
+    stop_voxels = stop_voxels[np.all((stop_voxels >= 0) & (stop_voxels < resolution), axis=1)]
+    group = VoxelConstraints.from_voxels(resolution, np.zeros((0, 3)), stop_voxels).occupied
+    return constraints.merged(
+        VoxelConstraints(resolution, np.zeros(0, np.int64), np.zeros(0, np.int64), (group,))
+    )
 
 
 def constraints_from_touches(

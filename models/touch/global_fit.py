@@ -11,9 +11,10 @@ fitted to a few patches can also go wrong, so a step is guarded:
 * after touch k the fit to touches 1..k (:func:`fit_mean`, from the previous fit) is made, and
   kept as the *candidate*;
 * the candidate of touch k-1 never saw touch k. The new fit becomes the mean only when that
-  predecessor predicted touch k (:func:`prediction_error_m`) better than vision's shape did, by
-  ``margin_m``, and no worse than the mean in use, and when the new fit keeps the camera's
-  depth points (RGB-D) as close as vision's shape did, within ``camera_tolerance_m``, and puts
+  predecessor predicted touch k (:func:`held_out_error_m`: its contacts, its free space and
+  where a force stopped it) better than vision's shape did, by ``margin_m``, and no worse than
+  the mean in use, and when the new fit keeps the camera's depth points (RGB-D) as close as
+  vision's shape did, within ``camera_tolerance_m``, and puts
   no more of its volume where the camera saw empty space (``seen_empty_tolerance``): a pose
   moves the decoder's own carving with the shape.
   Otherwise the mean stays (nothing gets worse), and the candidate goes on to predict the next
@@ -217,6 +218,22 @@ def prediction_error_m(distance: SignedDistanceGrid, touch: SurfaceObservations)
     return error
 
 
+def stop_error_m(distance: SignedDistanceGrid, touch: TouchResult) -> float:
+    """How far a shape stays from a stop by force without an imprint: the object reaches one
+    of the tool's points there (``TouchResult.stop_points_world``), so the distance outside the
+    shape of the nearest of them (0 for any other touch)."""
+    if len(touch.stop_points_world) == 0:
+        return 0.0
+    return max(float(np.min(distance(touch.stop_points_world))), 0.0)
+
+
+def held_out_error_m(distance: SignedDistanceGrid, touch: TouchResult, index: int) -> float:
+    """How far a shape is from what touch ``index`` measured (:func:`prediction_error_m` and
+    :func:`stop_error_m`)."""
+    observed = SurfaceObservations.from_touch(touch, index)
+    return prediction_error_m(distance, observed) + stop_error_m(distance, touch)
+
+
 def seen_empty_fraction(mean: ShapeMean, seen_empty: NDArray[np.bool_] | None) -> float:
     """The fraction of a posed shape's occupied voxels whose centres lie where the camera saw
     empty space (``seen_empty`` on the unposed grid, which is vision's and fixed in the world).
@@ -253,14 +270,14 @@ def global_step(
     mean if the previous candidate (which had not seen the newest touch) predicted that touch
     better than the mean in use. ``observations`` hold every touch's and the camera's points;
     ``seen_empty`` the voxels of the unposed grid the camera saw empty."""
-    newest = SurfaceObservations.from_touch(touches[-1], len(touches) - 1)
     candidate = fit_mean(decode, state.candidate, anchor_latent, touches, observations, settings)
     if len(touches) < 2:
         # The candidate before the first touch is vision itself: nothing was held out.
         return GlobalState(state.vision, state.mean, candidate, state.decisions)
-    vision_error = prediction_error_m(state.vision.posed_distance(), newest)
-    mean_error = prediction_error_m(state.mean.posed_distance(), newest)
-    candidate_error = prediction_error_m(state.candidate.posed_distance(), newest)
+    newest, index = touches[-1], len(touches) - 1
+    vision_error = held_out_error_m(state.vision.posed_distance(), newest, index)
+    mean_error = held_out_error_m(state.mean.posed_distance(), newest, index)
+    candidate_error = held_out_error_m(state.candidate.posed_distance(), newest, index)
     camera_change = camera_error_m(candidate.posed_distance(), observations) - camera_error_m(
         state.vision.posed_distance(), observations
     )

@@ -50,7 +50,9 @@ TouchLossKind = Literal["sum", "balanced", "threshold"]
 def touch_loss(
     voxels: Tensor, constraints: VoxelConstraints, kind: TouchLossKind = "sum"
 ) -> Tensor:
-    """The paper's touch loss: v^2 over empty voxels and (1 - v)^2 over occupied ones.
+    """The paper's touch loss: v^2 over empty voxels and (1 - v)^2 over occupied ones (and
+    over the most probable voxel of each ``any_occupied`` group, whose one occupied voxel is
+    not known).
 
     ``"sum"``: summed over all constrained voxels, as the paper writes it. ``"balanced"``: the
     mean over the empty voxels plus the mean over the occupied ones. A touch proves ~10 voxels
@@ -69,13 +71,27 @@ def touch_loss(
     flat = voxels.reshape(-1)
     empty_v = flat[torch.from_numpy(constraints.empty).to(voxels.device)]
     occupied_v = flat[torch.from_numpy(constraints.occupied).to(voxels.device)]
+    # A group of which one voxel is occupied pulls on its most probable voxel only.
+    any_v = (
+        torch.stack(
+            [
+                flat[torch.from_numpy(group).to(voxels.device)].max()
+                for group in constraints.any_occupied
+            ]
+        )
+        if constraints.any_occupied
+        else flat.new_zeros(0)
+    )
     if kind == "threshold":
         empty, occupied = torch.relu(empty_v - 0.5) ** 2, torch.relu(0.5 - occupied_v) ** 2
+        any_occupied = torch.relu(0.5 - any_v) ** 2
     else:
-        empty, occupied = empty_v**2, (1.0 - occupied_v) ** 2
+        empty, occupied, any_occupied = empty_v**2, (1.0 - occupied_v) ** 2, (1.0 - any_v) ** 2
     if kind == "sum":
-        return empty.sum() + occupied.sum()
+        return empty.sum() + occupied.sum() + any_occupied.sum()
     if kind in ("balanced", "threshold"):
+        # The groups count with the occupied voxels: each is one more voxel proven occupied.
+        occupied = torch.cat([occupied, any_occupied])
         return sum(
             (terms.mean() for terms in (empty, occupied) if terms.numel()), flat.new_zeros(())
         )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -415,6 +416,38 @@ def test_where_the_gel_pressed_the_table_it_measured_no_object(
     monkeypatch.setattr(learned, "contact_geometry", lambda *args, **kwargs: contact)
     outcome = perception_for(config, calibration).interpret(measurement)
     assert np.allclose(outcome.contact_points_world[:, 2], [0.003, 0.010])
+
+
+def _box_distance_m(points_world: np.ndarray) -> np.ndarray:
+    """The box bench's signed distance (metres, positive outside)."""
+    q = np.abs(points_world - [0.0, 0.0, BOX_HALF_M]) - BOX_HALF_M
+    return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
+
+
+@pytest.mark.parametrize(
+    "height_m",
+    [
+        BOX_HALF_M,  # the face fills the pad: the gel pressed evenly, no slope to see
+        2 * BOX_HALF_M + 0.012,  # the gel passes over the top; the housing meets the face
+    ],
+)
+def test_a_stop_without_an_imprint_knows_where_the_tool_met_the_object(
+    box_bench, config, calibration, height_m
+) -> None:
+    """Stopped by force without an imprint, the touch keeps the tool's leading points at the
+    stop: the simulated bench's physics put the object against one of them (distance ~0) and
+    inside none. With ``stop_constraints`` off it keeps none."""
+    target = TouchTarget(np.array([BOX_HALF_M, 0.0, height_m]), np.array([-1.0, 0.0, 0.0]))
+    measurement = box_bench.touch(target, noise_seed=(0,))
+    outcome = perception_for(config, calibration).interpret(measurement)
+    assert measurement.contact and len(outcome.contact_points_world) == 0  # force only
+    distance = _box_distance_m(outcome.touch.stop_points_world)
+    assert abs(distance.min()) < 0.001
+    assert distance.min() > -0.001
+    off = dataclasses.replace(
+        config, models=dataclasses.replace(config.models, stop_constraints=False)
+    )
+    assert len(perception_for(off, calibration).interpret(measurement).touch.stop_points_world) == 0
 
 
 @pytest.mark.parametrize("update", ["global", "fused"])

@@ -3,6 +3,8 @@ or scaled shape of the prior's family, and the guard refuses a step a held-out t
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -21,8 +23,10 @@ from models.touch.global_fit import (
     ShapeMean,
     committee_probabilities,
     global_step,
+    held_out_error_m,
     prediction_error_m,
     seen_empty_fraction,
+    stop_error_m,
 )
 from models.touch.observations import SurfaceObservations, observations_of
 from models.touch.policy import above_table_filter, select_touch
@@ -191,3 +195,24 @@ def test_the_committee_policy_touches_where_the_fit_and_the_mean_disagree():
     assert abs(candidate.approach_direction_world[1]) > 0.7
     taken = GlobalState(mean, moved, moved)
     assert committee_probabilities(taken, ball, GRID, 0.004) is ball
+
+
+def test_a_stop_is_predicted_by_a_shape_that_reaches_one_of_its_points():
+    """A stop without an imprint is explained by a shape that reaches any one of the tool's
+    points there; a shape short of all of them is off by the nearest one's distance, which the
+    guard's held-out error counts."""
+    centre, radius = np.array([0.0, 0.0, 0.06]), 0.03
+    ball = ShapeMean.of(torch.zeros(1, 200), _ball(GRID, centre, radius), GRID)
+    direction = np.array([-1.0, 0.0, 0.0])
+    pad = np.array([[0.06, y, 0.06] for y in (-0.005, 0.005)])
+    stop = TouchResult.from_miss(
+        pad + 0.05 * -direction, pad, [[0.045, 0.0, 0.06], [0.02, 0.0, 0.06]]
+    )
+    assert stop_error_m(ball.posed_distance(), stop) == 0.0  # one point lies inside the ball
+    short = replace(stop, stop_points_world=stop.stop_points_world[:1])
+    assert stop_error_m(ball.posed_distance(), short) == pytest.approx(0.015, abs=0.002)
+    free_only = replace(stop, stop_points_world=np.zeros((0, 3)))
+    assert stop_error_m(ball.posed_distance(), free_only) == 0.0
+    assert held_out_error_m(ball.posed_distance(), short, 0) == pytest.approx(
+        held_out_error_m(ball.posed_distance(), free_only, 0) + 0.015, abs=0.002
+    )

@@ -262,3 +262,34 @@ def test_touch_result_validation() -> None:
         TouchResult.from_contact(np.zeros((0, 3)), [0, 0, -1], [0, 0, 1])
     with pytest.raises(ValueError):
         TouchResult.from_miss(np.zeros((2, 3)), np.ones((3, 3)))
+
+
+def test_a_stop_adds_one_group_beyond_its_points_and_later_sweeps_empty_it() -> None:
+    """A stop without an imprint: its points' voxels (sqrt(3)/2 voxel beyond them along the
+    approach) form one group, none of them empty; a later sweep through some of them leaves the
+    rest; a stop whose voxels are all swept free afterwards drops out."""
+    grid = _wall_grid()
+    direction = np.array([0.0, 0.0, -1.0])
+    start_pose = make_transform(frame_from_z_axis(direction), [0.0, 0.0, 0.2])
+    starts = pad_grid_world(start_pose, (0.019, 0.014), 0.002)
+    ends = starts * [1, 1, 0] + [0, 0, 0.1]
+    stop_points = ends + np.array([0.03, 0.0, 0.0])  # beside the pad, as the housing's front is
+    stopped = touch_constraints(TouchResult.from_miss(starts, ends, stop_points), grid)
+    (group,) = stopped.any_occupied
+    ijk = np.stack(np.unravel_index(group, (grid.resolution,) * 3), axis=1)
+    expected = np.floor(grid.world_to_voxel(stop_points + direction * 0.01 * np.sqrt(3) / 2))
+    assert {tuple(v) for v in ijk} == {tuple(v) for v in expected.astype(int)}
+    assert not np.intersect1d(group, stopped.empty).size
+    assert len(touch_constraints(TouchResult.from_miss(starts, ends), grid).any_occupied) == 0
+    up = np.array([0.0, 0.0, 0.05])
+    sweep_starts = stop_points[:5] + up
+    partly = stopped.merged(
+        touch_constraints(TouchResult.from_miss(sweep_starts, sweep_starts - [0, 0, 0.2]), grid)
+    )
+    (rest,) = partly.any_occupied
+    assert 0 < len(rest) < len(group)
+    swept = stop_points + up
+    cleared = stopped.merged(
+        touch_constraints(TouchResult.from_miss(swept, swept - [0, 0, 0.2]), grid)
+    )
+    assert cleared.any_occupied == ()

@@ -266,3 +266,55 @@ def test_patience_stops_where_the_objective_stops_improving_and_keeps_the_best()
     assert patient.losses == free.losses
     with pytest.raises(ValueError, match="patience"):
         refine_latent(decoder, latent, _constraints(), patience=0)
+
+
+def test_a_stop_pulls_only_its_most_probable_voxel_and_none_once_one_is_inside() -> None:
+    """A stop without an imprint: one of its voxels is occupied, which one is not known. The
+    threshold loss pulls the group's most probable voxel up to 0.5, counted with the occupied
+    voxels, and nothing once any of them is inside."""
+    group = np.ravel_multi_index(([1, 2, 3], [1, 1, 1], [1, 1, 1]), (N, N, N))
+    stopped = VoxelConstraints(N, np.zeros(0, np.int64), np.zeros(0, np.int64), (group,))
+    voxels = torch.full((N, N, N), 0.1, dtype=torch.float64)
+    voxels.reshape(-1)[group] = torch.tensor([0.2, 0.3, 0.1], dtype=torch.float64)
+    voxels.requires_grad_(True)
+    loss = touch_loss(voxels, stopped, "threshold")
+    (gradient,) = torch.autograd.grad(loss, voxels)
+    assert float(loss.detach()) == pytest.approx(0.2**2)  # 0.5 - 0.3: the most probable
+    expected = torch.zeros(N**3, dtype=torch.float64)
+    expected[group[1]] = -2 * 0.2
+    torch.testing.assert_close(gradient.reshape(-1), expected)
+    inside = voxels.detach().clone()
+    inside.reshape(-1)[group[2]] = 0.7
+    assert float(touch_loss(inside, stopped, "threshold")) == 0.0
+
+
+def test_a_stop_grows_a_too_small_sphere_to_reach_the_tool() -> None:
+    """End to end: a sphere predicted 1 cm too small; the fingers stopped by force 4 cm from its
+    centre, on the tool's leading points, without an imprint. The stop's group makes the latent
+    grow the sphere to reach them; the sweep alone (its free space) does not."""
+    grid = VoxelGrid(resolution=32, extent_m=0.16)  # 5 mm voxels
+    centre_world = np.array([0.0, 0.0, 0.06])
+    centres = torch.from_numpy(grid.voxel_centres_world())
+    centre = torch.from_numpy(centre_world)
+
+    def sphere_decoder(latent: torch.Tensor) -> torch.Tensor:
+        radius_m = 0.03 + 0.05 * latent[0, 0]  # latent 0 -> 3 cm, 1 cm too small
+        distance = torch.linalg.norm(centres - centre, dim=-1)
+        return torch.sigmoid((radius_m - distance) / 0.002).float()
+
+    direction = np.array([-1.0, 0.0, 0.0])
+    start = make_transform(frame_from_z_axis(direction), centre_world + np.array([0.1, 0.0, 0.0]))
+    stop = make_transform(frame_from_z_axis(direction), centre_world + np.array([0.045, 0.0, 0.0]))
+    starts = pad_grid_world(start, (0.019, 0.014), 0.002)
+    ends = pad_grid_world(stop, (0.019, 0.014), 0.002)
+    radii = {}
+    for name, stop_points in (("stop", ends + 0.005 * direction), ("sweep", ())):
+        touch = TouchResult.from_miss(starts, ends, stop_points)
+        constraints = constraints_from_touches([touch], grid)
+        assert len(constraints.any_occupied) == (name == "stop")
+        result = refine_latent(
+            sphere_decoder, torch.zeros(1, 200), constraints, 0.02, 20, loss="threshold"
+        )
+        radii[name] = 0.03 + 0.05 * float(result.latent[0, 0])
+    assert radii["sweep"] == pytest.approx(0.03, abs=0.001)
+    assert radii["stop"] > 0.04
