@@ -24,8 +24,8 @@
 # 3. Calibration on the same folders, 256 views, seed 0.
 # Run 1 (2026-12-07, CREATURES=0, EPOCHS=5, RUN=logs/train/object_frame_vessel)
 # learnt the vessels and forgot animals: not adopted (docs/prior.md, "Results: the vessel
-# fine-tune"). The next run (these defaults, not run yet) keeps the creature fine-tune's 200
-# creatures.
+# fine-tune"). Run 2 (2026-12-07, these defaults) kept the creature fine-tune's 200 creatures
+# and still lost the bunny: not adopted either (docs/prior.md, "... run 2").
 set -euo pipefail
 PY=${PY:-.venv/bin/python}
 TS="$PY -m controller.cli.prior"
