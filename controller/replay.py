@@ -137,8 +137,7 @@ def _run(
         if reference_file not in references_saved:
             save_tactile_frame(folder, GELSIGHT_REFERENCE_FILE, measurement.reference)
             references_saved.add(reference_file)
-        width_m = float(touch.record["gripper_width_m"])
-        inputs = touch_inputs_record(session_id, touch.number, measurement, width_m)
+        inputs = touch_inputs_record(session_id, touch.number, measurement)
         save_tactile_frame(folder, inputs["gelsight_image"], measurement.tactile)
         recorder.set_touch(touch.number)
         try:

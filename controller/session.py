@@ -459,10 +459,11 @@ class ExplorationSession:
             pose_world_pad=pose_world_pad,
             pad_start_world=self._touch.pad_start_world,
             force_n=gripper.force_n,
+            gripper_width_m=gripper.width_m,
         )
         # The raw inputs first: a touch a replay can re-interpret, whatever becomes of it here.
         number = self.touch_count + 1
-        inputs = touch_inputs_record(self.session_id, number, measurement, gripper.width_m)
+        inputs = touch_inputs_record(self.session_id, number, measurement)
         folder = self.recorder.artifacts_dir
         await record_in_thread(
             partial(save_tactile_frame, folder, inputs["gelsight_image"], tactile)

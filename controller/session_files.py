@@ -107,11 +107,13 @@ def save_truth(folder: Path, mesh: trimesh.Trimesh) -> Path:
 
 
 def touch_inputs_record(
-    session_id: str, number: int, measurement: TouchMeasurement, gripper_width_m: float
+    session_id: str, number: int, measurement: TouchMeasurement
 ) -> dict[str, Any]:
     """The raw-input fields of touch ``number``'s line in ``touches.jsonl``: what
     ``read_session`` rebuilds the measurement from (the images go to ``gelsight_image`` and
     ``gelsight_reference``, which the caller saves)."""
+    if measurement.gripper_width_m is None:
+        raise ValueError("a recorded touch needs the fingers' opening (gripper_width_m)")
     target = measurement.target
     return {
         "session": session_id,
@@ -122,7 +124,7 @@ def touch_inputs_record(
         "target_uncertainty": float(target.uncertainty),
         "contact": bool(measurement.contact),
         "force_n": float(measurement.force_n),
-        "gripper_width_m": float(gripper_width_m),
+        "gripper_width_m": float(measurement.gripper_width_m),
         "pad_start_world": np.asarray(measurement.pad_start_world).tolist(),
         "pose_world_pad": np.asarray(measurement.pose_world_pad).tolist(),
         "gelsight_timestamp_s": float(measurement.tactile.timestamp_s),
@@ -304,7 +306,13 @@ def _recorded_touch(
     if not isinstance(number, int) or number < 1:
         raise SessionFolderError(f"{where}: 'touch' must be a positive integer")
     scalars = {}
-    for name in ("target_score", "target_uncertainty", "force_n", "gelsight_timestamp_s"):
+    for name in (
+        "target_score",
+        "target_uncertainty",
+        "force_n",
+        "gripper_width_m",
+        "gelsight_timestamp_s",
+    ):
         value = field(name)
         if (
             not isinstance(value, int | float)
@@ -334,6 +342,7 @@ def _recorded_touch(
         pose_world_pad=field("pose_world_pad", (4, 4)),
         pad_start_world=field("pad_start_world", (3,)),
         force_n=scalars["force_n"],
+        gripper_width_m=scalars["gripper_width_m"],
     )
     return RecordedTouch(number, record, measurement)
 

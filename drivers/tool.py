@@ -28,6 +28,19 @@ class ToolBox:
     pose_tcp_box: NDArray[np.float64]
     half_extents_m: NDArray[np.float64]
 
+    def lowest_world_z_m(self, pose_world_tcp: NDArray[np.float64]) -> float:
+        """The box's lowest world z at a tool pose: the corner whose offsets all point down,
+        |R[2, :]| . half extents below its centre."""
+        pose_world_box = pose_world_tcp @ self.pose_tcp_box
+        return float(pose_world_box[2, 3] - np.abs(pose_world_box[2, :3]) @ self.half_extents_m)
+
+    def corners_tcp(self) -> NDArray[np.float64]:
+        """The box's 8 corners in the tool frame (8, 3)."""
+        signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
+        return (signs * self.half_extents_m) @ self.pose_tcp_box[:3, :3].T + self.pose_tcp_box[
+            :3, 3
+        ]
+
 
 class ToolModel:
     """Width-dependent geometry of gripper, fingers and sensor, from their configs."""
@@ -101,38 +114,56 @@ class ToolModel:
             ),
         ]
 
-    def leading_points_pad(self, spacing_m: float) -> NDArray[np.float64]:
-        """Where an object can first meet the sensor's finger as it moves along the pad's +z
-        (the fingers opening), pad frame, metres (M, 3): the gel's surface (z = 0, the pad),
-        then the housing's front around it (z = -``housing_recess_m``), then the sensor-side
-        finger's front beyond the housing; each face without the part the faces ahead of it
-        cover. A touch stopped by force without an imprint met the object at one of them."""
-        pad_from_tcp = np.linalg.inv(self.pose_tcp_pad(0.0))
-        boxes = {box.name: box for box in self.rigid_boxes(0.0)}
-        half_pad = np.array([self.sensor.pad_width_mm, self.sensor.pad_height_mm]) * 1e-3 / 2
-        faces = [(0.0, -half_pad, half_pad)]  # (pad z, (x, y) min, (x, y) max), front first
+    def leading_points_pad(
+        self, width_m: float, spacing_m: float
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Where an object can first meet a finger as the fingers open, at an opening
+        ``width_m``: points (M, 3) and the direction each moves (M, 3, unit), pad frame,
+        metres. The sensor's finger moves along the pad's +z: the gel's surface (z = 0, the
+        pad), then the housing's front around it (z = -``housing_recess_m``), then the finger's
+        front beyond the housing, each face without the part the faces ahead of it cover. The
+        other finger moves along -z: its outer face. Fingers stopped by force without an imprint
+        met the object at one of them (or the table)."""
+        pad_from_tcp = np.linalg.inv(self.pose_tcp_pad(width_m))
+
+        def extent_pad(box: ToolBox) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+            corners = box.corners_tcp() @ pad_from_tcp[:3, :3].T + pad_from_tcp[:3, 3]
+            return corners.min(axis=0), corners.max(axis=0)
+
+        boxes = {box.name: box for box in self.rigid_boxes(width_m)}
+        half_pad = np.array([self.sensor.pad_width_mm, self.sensor.pad_height_mm, 0.0]) * 1e-3 / 2
+        faces = [(0.0, -half_pad[:2], half_pad[:2])]  # (pad z, (x, y) min, max), front first
         for name in ("gelsight_housing", "finger_sensor_side"):
-            box = boxes[name]
-            signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
-            corners_tcp = box.pose_tcp_box[:3, 3] + signs * box.half_extents_m
-            corners = corners_tcp @ pad_from_tcp[:3, :3].T + pad_from_tcp[:3, 3]
-            faces.append((corners[:, 2].max(), corners[:, :2].min(0), corners[:, :2].max(0)))
-        points = []
-        for index, (z, low, high) in enumerate(faces):
-            axes = [
-                np.linspace(
-                    low[a], high[a], max(2, int(np.ceil((high[a] - low[a]) / spacing_m)) + 1)
-                )
-                for a in range(2)
-            ]
-            x, y = (grid.ravel() for grid in np.meshgrid(*axes, indexing="ij"))
-            covered = np.zeros(x.shape, bool)
-            for _, ahead_low, ahead_high in faces[:index]:
-                covered |= (
-                    (x > ahead_low[0])
-                    & (x < ahead_high[0])
-                    & (y > ahead_low[1])
-                    & (y < ahead_high[1])
-                )
-            points.append(np.column_stack([x[~covered], y[~covered], np.full((~covered).sum(), z)]))
-        return np.concatenate(points)
+            low, high = extent_pad(boxes[name])
+            faces.append((high[2], low[:2], high[:2]))
+        points = [
+            _face_points(z, low, high, [ahead[1:] for ahead in faces[:index]], spacing_m)
+            for index, (z, low, high) in enumerate(faces)
+        ]
+        low, high = extent_pad(boxes["finger_other_side"])
+        points.append(_face_points(low[2], low[:2], high[:2], [], spacing_m))
+        directions = [np.tile([0.0, 0.0, 1.0], (len(p), 1)) for p in points[:-1]]
+        directions.append(np.tile([0.0, 0.0, -1.0], (len(points[-1]), 1)))
+        return np.concatenate(points), np.concatenate(directions)
+
+
+def _face_points(
+    z_m: float,
+    low: NDArray[np.float64],
+    high: NDArray[np.float64],
+    covered_by: list[tuple[NDArray[np.float64], NDArray[np.float64]]],
+    spacing_m: float,
+) -> NDArray[np.float64]:
+    """A grid at most ``spacing_m`` apart on the rectangle ``low``-``high`` (x, y) at height
+    ``z_m``, without the points strictly inside any rectangle of ``covered_by``."""
+    axes = [
+        np.linspace(low[a], high[a], max(2, int(np.ceil((high[a] - low[a]) / spacing_m)) + 1))
+        for a in range(2)
+    ]
+    x, y = (grid.ravel() for grid in np.meshgrid(*axes, indexing="ij"))
+    covered = np.zeros(x.shape, bool)
+    for ahead_low, ahead_high in covered_by:
+        covered |= (
+            (x > ahead_low[0]) & (x < ahead_high[0]) & (y > ahead_low[1]) & (y < ahead_high[1])
+        )
+    return np.column_stack([x[~covered], y[~covered], np.full(int((~covered).sum()), z_m)])

@@ -156,4 +156,5 @@ class SimTouchBench:
             pose_world_pad=self.world.pose_world_pad(),
             pad_start_world=pose_world_pad_start[:3, 3].copy(),
             force_n=state.force_n,
+            gripper_width_m=state.width_m,
         )

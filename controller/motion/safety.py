@@ -197,7 +197,7 @@ def check_clearance(
     ]
     for box in boxes:
         pose_world_box = pose_world_tcp @ box.pose_tcp_box
-        lowest_m = _lowest_point_z(pose_world_box, box)
+        lowest_m = box.lowest_world_z_m(pose_world_tcp)
         if lowest_m < limits.table_clearance_m:
             raise SafetyViolation(
                 f"{box.name} would be {lowest_m * 1e3:.1f} mm above the table, "
@@ -289,11 +289,6 @@ def check_pose(
         near_parts=near_parts,
     )
     return joints
-
-
-def _lowest_point_z(pose_world_box: NDArray[np.float64], box: ToolBox) -> float:
-    # The lowest point of a box is the corner whose offsets all point down: |R[2,:]| . half.
-    return float(pose_world_box[2, 3] - np.abs(pose_world_box[2, :3]) @ box.half_extents_m)
 
 
 def _box_near_points(

@@ -137,9 +137,7 @@ class LearnedPerception:
         self._reconstructors: dict[int, TactileReconstructor] = {}
         sensor = config.sensor
         self.pad_size_m = (sensor.pad_width_mm * 1e-3, sensor.pad_height_mm * 1e-3)
-        self.leading_points_pad = ToolModel(config.gripper, sensor).leading_points_pad(
-            STOP_POINT_SPACING_M
-        )
+        self.tool = ToolModel(config.gripper, sensor)
 
     def prior(self, name: str) -> ShapePrior:
         """A named prior, loaded once."""
@@ -511,20 +509,26 @@ class LearnedPerception:
 
     def _sweep(self, measurement: TouchMeasurement) -> TouchResult:
         """The pad's sweep from the approach start to where it stopped: all empty. Stopped by
-        force (``stop_constraints``), the object also reaches one of the tool's leading points
-        at the stop, unless some of them reached the table, which may have stopped it."""
+        force (``stop_constraints``), the object also reaches one of the points where the
+        fingers can first meet it (``ToolModel.leading_points_pad``), unless a rigid part of
+        the tool reached the table, which may have stopped them, or the opening is unknown."""
         end = measurement.pose_world_pad
         start = make_transform(end[:3, :3], measurement.pad_start_world)
         spacing = FREE_RAY_SPACING_M
-        stop = np.zeros((0, 3))
-        if measurement.contact and self.config.models.stop_constraints:
-            stop = transform_points(end, self.leading_points_pad)
-            if np.any(stop[:, 2] < TABLE_CONTACT_M):
-                stop = np.zeros((0, 3))
-        return TouchResult.from_miss(
+        sweep = (
             pad_grid_world(start, self.pad_size_m, spacing),
             pad_grid_world(end, self.pad_size_m, spacing),
-            stop,
+        )
+        width_m = measurement.gripper_width_m
+        if not measurement.contact or not self.config.models.stop_constraints or width_m is None:
+            return TouchResult.from_miss(*sweep)
+        pose_world_tcp = end @ np.linalg.inv(self.tool.pose_tcp_pad(width_m))
+        for box in self.tool.rigid_boxes(width_m):
+            if box.lowest_world_z_m(pose_world_tcp) < TABLE_CONTACT_M:
+                return TouchResult.from_miss(*sweep)
+        points_pad, directions_pad = self.tool.leading_points_pad(width_m, STOP_POINT_SPACING_M)
+        return TouchResult.from_miss(
+            *sweep, transform_points(end, points_pad), directions_pad @ end[:3, :3].T
         )
 
 

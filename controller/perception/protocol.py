@@ -111,6 +111,9 @@ class TouchMeasurement:
     pad_start_world: FloatArray
     """Pad centre where the approach began: the swept segment starts here."""
     force_n: float
+    gripper_width_m: float | None = None
+    """The fingers' opening where they stopped (where the other finger was); None where not
+    known, and then a stop without an imprint is taken as its sweep alone."""
 
 
 @dataclass

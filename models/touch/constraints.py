@@ -71,6 +71,8 @@ class TouchResult:
     """Of a stroke the fingers' force stopped without an imprint: the points of the tool where
     it can have met the object (``drivers.tool.ToolModel.leading_points_pad`` at the stop).
     The object reaches at least one of them; empty for any other touch."""
+    stop_directions_world: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    """The direction each of ``stop_points_world`` moved in (unit): the object lies beyond."""
 
     @property
     def is_miss(self) -> bool:
@@ -119,10 +121,11 @@ class TouchResult:
         segment_starts_world: ArrayLike,
         segment_ends_world: ArrayLike,
         stop_points_world: ArrayLike = (),
+        stop_directions_world: ArrayLike = (),
     ) -> TouchResult:
         """A touch whose stroke met nothing under the gel: each swept segment start -> end is
-        empty. ``stop_points_world``: where a force stopped it, the tool's points that can have
-        met the object (``TouchResult.stop_points_world``).
+        empty. ``stop_points_world``, ``stop_directions_world``: where a force stopped it, the
+        tool's points that can have met the object and the direction each moved in.
 
         All segments must be parallel (one rigid pad moving straight); see :func:`pad_grid_world`
         for sampling the pad.
@@ -132,7 +135,10 @@ class TouchResult:
         if starts.shape != ends.shape or len(starts) == 0:
             raise ValueError("need matching, non-empty (N, 3) segment starts and ends")
         direction = _unit((ends - starts).mean(axis=0))
-        return cls(direction, starts, ends, np.zeros(len(starts), bool), _points(stop_points_world))
+        stop, stop_directions = _points(stop_points_world), _points(stop_directions_world)
+        if stop.shape != stop_directions.shape:
+            raise ValueError("need a direction for every stop point")
+        return cls(direction, starts, ends, np.zeros(len(starts), bool), stop, stop_directions)
 
 
 def pad_grid_world(
@@ -334,7 +340,8 @@ def touch_constraints(
     unknown).
     Rays whose end points fall in the same ``ray_spacing_voxels`` cell are traversed once.
     A stop without an imprint (``TouchResult.stop_points_world``) adds one ``any_occupied``
-    group: the voxels holding its points ``occupied_depth_voxels`` beyond them along the ray.
+    group: the voxels holding its points ``occupied_depth_voxels`` beyond them, each along the
+    direction it moved.
     """
     starts = grid.world_to_voxel(touch.ray_starts_world)
     ends = grid.world_to_voxel(touch.ray_ends_world)
@@ -359,7 +366,10 @@ def touch_constraints(
     constraints = VoxelConstraints.from_voxels(resolution, voxels[~beyond_end], occupied)
     if len(touch.stop_points_world) == 0:
         return constraints
-    stop = grid.world_to_voxel(touch.stop_points_world) + occupied_depth_voxels * direction_voxel
+    beyond_world = touch.stop_points_world + touch.stop_directions_world
+    beyond_voxel = grid.world_to_voxel(beyond_world) - grid.world_to_voxel(touch.stop_points_world)
+    beyond_voxel /= np.linalg.norm(beyond_voxel, axis=1, keepdims=True)
+    stop = grid.world_to_voxel(touch.stop_points_world) + occupied_depth_voxels * beyond_voxel
     stop_voxels = np.floor(stop).astype(np.int64)
     stop_voxels = stop_voxels[np.all((stop_voxels >= 0) & (stop_voxels < resolution), axis=1)]
     group = VoxelConstraints.from_voxels(resolution, np.zeros((0, 3)), stop_voxels).occupied

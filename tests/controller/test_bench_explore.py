@@ -450,6 +450,25 @@ def test_a_stop_without_an_imprint_knows_where_the_tool_met_the_object(
     assert len(perception_for(off, calibration).interpret(measurement).touch.stop_points_world) == 0
 
 
+def test_a_stop_where_the_tool_reached_the_table_says_nothing_of_the_object(
+    box_bench, config, calibration
+) -> None:
+    """The same stop without an imprint, moved down until a rigid part of the tool reaches the
+    table: the table may have stopped the fingers, so the touch keeps its sweep alone."""
+    target = TouchTarget(np.array([BOX_HALF_M, 0.0, BOX_HALF_M]), np.array([-1.0, 0.0, 0.0]))
+    measurement = box_bench.touch(target, noise_seed=(0,))
+    perception = perception_for(config, calibration)
+    assert len(perception.interpret(measurement).touch.stop_points_world)
+    tool = perception.tool
+    width_m = measurement.gripper_width_m
+    pose_world_tcp = measurement.pose_world_pad @ np.linalg.inv(tool.pose_tcp_pad(width_m))
+    lowest_m = min(box.lowest_world_z_m(pose_world_tcp) for box in tool.rigid_boxes(width_m))
+    lowered = measurement.pose_world_pad.copy()
+    lowered[2, 3] -= lowest_m + 0.001  # the lowest part 1 mm into the table
+    at_table = dataclasses.replace(measurement, pose_world_pad=lowered)
+    assert len(perception.interpret(at_table).touch.stop_points_world) == 0
+
+
 @pytest.mark.parametrize("update", ["global", "fused"])
 def test_a_contact_without_an_imprint_never_moves_the_surface_inward(
     box_bench, config, calibration, update

@@ -36,6 +36,7 @@ def _measurement(rng: np.random.Generator) -> TouchMeasurement:
         pose_world_pad=pose,
         pad_start_world=rng.normal(size=3),
         force_n=4.75,
+        gripper_width_m=0.05,
     )
 
 
@@ -55,7 +56,7 @@ def _write_session(folder: Path, rng: np.random.Generator) -> tuple[RGBDFrame, T
     save_config(folder, load_config(None))
     save_camera_frame(folder, frame)
     save_tactile_frame(folder, GELSIGHT_REFERENCE_FILE, measurement.reference)
-    record = touch_inputs_record("s", 1, measurement, 0.05)
+    record = touch_inputs_record("s", 1, measurement)
     save_tactile_frame(folder, record["gelsight_image"], measurement.tactile)
     (folder / TOUCHES_FILE).write_text(json.dumps(record) + "\n")
     return frame, measurement
@@ -78,7 +79,7 @@ def test_inputs_read_back_bit_exact(tmp_path: Path, rng: np.random.Generator) ->
     assert np.array_equal(read.pad_start_world, measurement.pad_start_world)
     assert np.array_equal(read.target.target_world, measurement.target.target_world)
     assert (read.contact, read.force_n, read.target.uncertainty) == (True, 4.75, 0.75)
-    assert touch.record["gripper_width_m"] == 0.05
+    assert touch.record["gripper_width_m"] == read.gripper_width_m == 0.05
 
 
 @pytest.mark.parametrize(

@@ -206,7 +206,7 @@ def test_a_stop_is_predicted_by_a_shape_that_reaches_one_of_its_points():
     direction = np.array([-1.0, 0.0, 0.0])
     pad = np.array([[0.06, y, 0.06] for y in (-0.005, 0.005)])
     stop = TouchResult.from_miss(
-        pad + 0.05 * -direction, pad, [[0.045, 0.0, 0.06], [0.02, 0.0, 0.06]]
+        pad + 0.05 * -direction, pad, [[0.045, 0.0, 0.06], [0.02, 0.0, 0.06]], [direction] * 2
     )
     assert stop_error_m(ball.posed_distance(), stop) == 0.0  # one point lies inside the ball
     short = replace(stop, stop_points_world=stop.stop_points_world[:1])

@@ -265,24 +265,34 @@ def test_touch_result_validation() -> None:
 
 
 def test_a_stop_adds_one_group_beyond_its_points_and_later_sweeps_empty_it() -> None:
-    """A stop without an imprint: its points' voxels (sqrt(3)/2 voxel beyond them along the
-    approach) form one group, none of them empty; a later sweep through some of them leaves the
-    rest; a stop whose voxels are all swept free afterwards drops out."""
+    """A stop without an imprint: its points' voxels (sqrt(3)/2 voxel beyond them, each along
+    the direction it moved: the pad's side down, the other finger's up) form one group, none
+    of them empty; a later sweep through some of them leaves the rest; a stop whose voxels are
+    all swept free afterwards drops out."""
     grid = _wall_grid()
     direction = np.array([0.0, 0.0, -1.0])
     start_pose = make_transform(frame_from_z_axis(direction), [0.0, 0.0, 0.2])
     starts = pad_grid_world(start_pose, (0.019, 0.014), 0.002)
     ends = starts * [1, 1, 0] + [0, 0, 0.1]
-    stop_points = ends + np.array([0.03, 0.0, 0.0])  # beside the pad, as the housing's front is
-    stopped = touch_constraints(TouchResult.from_miss(starts, ends, stop_points), grid)
+    beside = ends + np.array([0.03, 0.0, 0.0])  # beside the pad, as the housing's front is
+    behind = ends + np.array([0.0, 0.04, 0.03])  # the other finger, moving up
+    stop_points = np.concatenate([beside, behind])
+    directions = np.concatenate(
+        [np.tile(direction, (len(ends), 1)), np.tile(-direction, (len(ends), 1))]
+    )
+    touch = TouchResult.from_miss(starts, ends, stop_points, directions)
+    stopped = touch_constraints(touch, grid)
     (group,) = stopped.any_occupied
     ijk = np.stack(np.unravel_index(group, (grid.resolution,) * 3), axis=1)
-    expected = np.floor(grid.world_to_voxel(stop_points + direction * 0.01 * np.sqrt(3) / 2))
-    assert {tuple(v) for v in ijk} == {tuple(v) for v in expected.astype(int)}
+    depth_m = 0.01 * np.sqrt(3) / 2
+    expected = np.floor(grid.world_to_voxel(stop_points + directions * depth_m)).astype(int)
+    assert {tuple(v) for v in ijk} == {tuple(v) for v in expected}
     assert not np.intersect1d(group, stopped.empty).size
     assert len(touch_constraints(TouchResult.from_miss(starts, ends), grid).any_occupied) == 0
+    with pytest.raises(ValueError):
+        TouchResult.from_miss(starts, ends, stop_points, directions[:3])
     up = np.array([0.0, 0.0, 0.05])
-    sweep_starts = stop_points[:5] + up
+    sweep_starts = beside[:5] + up
     partly = stopped.merged(
         touch_constraints(TouchResult.from_miss(sweep_starts, sweep_starts - [0, 0, 0.2]), grid)
     )
@@ -290,6 +300,6 @@ def test_a_stop_adds_one_group_beyond_its_points_and_later_sweeps_empty_it() -> 
     assert 0 < len(rest) < len(group)
     swept = stop_points + up
     cleared = stopped.merged(
-        touch_constraints(TouchResult.from_miss(swept, swept - [0, 0, 0.2]), grid)
+        touch_constraints(TouchResult.from_miss(swept, swept - [0, 0, 0.3]), grid)
     )
     assert cleared.any_occupied == ()

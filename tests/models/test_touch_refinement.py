@@ -308,8 +308,9 @@ def test_a_stop_grows_a_too_small_sphere_to_reach_the_tool() -> None:
     starts = pad_grid_world(start, (0.019, 0.014), 0.002)
     ends = pad_grid_world(stop, (0.019, 0.014), 0.002)
     radii = {}
-    for name, stop_points in (("stop", ends + 0.005 * direction), ("sweep", ())):
-        touch = TouchResult.from_miss(starts, ends, stop_points)
+    stop_points = ends + 0.005 * direction
+    for name, stop in (("stop", (stop_points, [direction] * len(ends))), ("sweep", ())):
+        touch = TouchResult.from_miss(starts, ends, *stop)
         constraints = constraints_from_touches([touch], grid)
         assert len(constraints.any_occupied) == (name == "stop")
         result = refine_latent(
