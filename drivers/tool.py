@@ -37,9 +37,8 @@ class ToolBox:
     def corners_tcp(self) -> NDArray[np.float64]:
         """The box's 8 corners in the tool frame (8, 3)."""
         signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
-        return (signs * self.half_extents_m) @ self.pose_tcp_box[:3, :3].T + self.pose_tcp_box[
-            :3, 3
-        ]
+        rotation, centre = self.pose_tcp_box[:3, :3], self.pose_tcp_box[:3, 3]
+        return (signs * self.half_extents_m) @ rotation.T + centre
 
 
 class ToolModel:
@@ -131,8 +130,8 @@ class ToolModel:
             return corners.min(axis=0), corners.max(axis=0)
 
         boxes = {box.name: box for box in self.rigid_boxes(width_m)}
-        half_pad = np.array([self.sensor.pad_width_mm, self.sensor.pad_height_mm, 0.0]) * 1e-3 / 2
-        faces = [(0.0, -half_pad[:2], half_pad[:2])]  # (pad z, (x, y) min, max), front first
+        half_pad = np.array([self.sensor.pad_width_mm, self.sensor.pad_height_mm]) * 1e-3 / 2
+        faces = [(0.0, -half_pad, half_pad)]  # (pad z, (x, y) min, max), front first
         for name in ("gelsight_housing", "finger_sensor_side"):
             low, high = extent_pad(boxes[name])
             faces.append((high[2], low[:2], high[:2]))
