@@ -366,11 +366,10 @@ def touch_constraints(
     constraints = VoxelConstraints.from_voxels(resolution, voxels[~beyond_end], occupied)
     if len(touch.stop_points_world) == 0:
         return constraints
-    beyond_world = touch.stop_points_world + touch.stop_directions_world
-    beyond_voxel = grid.world_to_voxel(beyond_world) - grid.world_to_voxel(touch.stop_points_world)
-    beyond_voxel /= np.linalg.norm(beyond_voxel, axis=1, keepdims=True)
-    stop = grid.world_to_voxel(touch.stop_points_world) + occupied_depth_voxels * beyond_voxel
-    stop_voxels = np.floor(stop).astype(np.int64)
+    stop = grid.world_to_voxel(touch.stop_points_world)
+    beyond = grid.world_to_voxel(touch.stop_points_world + touch.stop_directions_world) - stop
+    beyond /= np.linalg.norm(beyond, axis=1, keepdims=True)
+    stop_voxels = np.floor(stop + occupied_depth_voxels * beyond).astype(np.int64)
     stop_voxels = stop_voxels[np.all((stop_voxels >= 0) & (stop_voxels < resolution), axis=1)]
     group = VoxelConstraints.from_voxels(resolution, np.zeros((0, 3)), stop_voxels).occupied
     return constraints.merged(

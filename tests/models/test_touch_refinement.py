@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 import torch
@@ -205,19 +207,30 @@ def test_direct_edit_writes_constraints_into_a_copy() -> None:
         direct_edit(np.zeros((4, 4, 4)), constraints)
 
 
+SPHERE_GRID = VoxelGrid(resolution=32, extent_m=0.16)  # 5 mm voxels
+SPHERE_CENTRE_WORLD = np.array([0.0, 0.0, 0.06])
+
+
+def _sphere_decoder(radius_at_zero_m: float) -> Callable[[torch.Tensor], torch.Tensor]:
+    """A toy prior on ``SPHERE_GRID``: a sphere at ``SPHERE_CENTRE_WORLD`` whose radius is
+    ``radius_at_zero_m + 0.05 * latent[0, 0]``, its surface blurred over 2 mm."""
+    centres = torch.from_numpy(SPHERE_GRID.voxel_centres_world())
+    centre = torch.from_numpy(SPHERE_CENTRE_WORLD)
+
+    def decode(latent: torch.Tensor) -> torch.Tensor:
+        radius_m = radius_at_zero_m + 0.05 * latent[0, 0]
+        distance = torch.linalg.norm(centres - centre, dim=-1)
+        return torch.sigmoid((radius_m - distance) / 0.002).float()
+
+    return decode
+
+
 def test_touches_shrink_a_too_fat_sphere_through_the_latent() -> None:
     """End to end: rays of a touch on a true sphere -> constraints -> refinement of a toy prior
     whose latent sets the radius; the prediction is too fat and must shrink toward the truth."""
-    grid = VoxelGrid(resolution=32, extent_m=0.16)  # 5 mm voxels
-    centre_world = np.array([0.0, 0.0, 0.06])
+    grid, centre_world = SPHERE_GRID, SPHERE_CENTRE_WORLD
     true_radius_m = 0.04
-    centres = torch.from_numpy(grid.voxel_centres_world())
-    centre = torch.from_numpy(centre_world)
-
-    def sphere_decoder(latent: torch.Tensor) -> torch.Tensor:
-        radius_m = 0.05 + 0.05 * latent[0, 0]  # latent 0 -> 5 cm, 1 cm too fat
-        distance = torch.linalg.norm(centres - centre, dim=-1)
-        return torch.sigmoid((radius_m - distance) / 0.002).float()
+    sphere_decoder = _sphere_decoder(0.05)  # latent 0 -> 5 cm, 1 cm too fat
 
     touches = []
     for direction in ([1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]):
@@ -292,15 +305,8 @@ def test_a_stop_grows_a_too_small_sphere_to_reach_the_tool() -> None:
     """End to end: a sphere predicted 1 cm too small; the fingers stopped by force 4 cm from its
     centre, on the tool's leading points, without an imprint. The stop's group makes the latent
     grow the sphere to reach them; the sweep alone (its free space) does not."""
-    grid = VoxelGrid(resolution=32, extent_m=0.16)  # 5 mm voxels
-    centre_world = np.array([0.0, 0.0, 0.06])
-    centres = torch.from_numpy(grid.voxel_centres_world())
-    centre = torch.from_numpy(centre_world)
-
-    def sphere_decoder(latent: torch.Tensor) -> torch.Tensor:
-        radius_m = 0.03 + 0.05 * latent[0, 0]  # latent 0 -> 3 cm, 1 cm too small
-        distance = torch.linalg.norm(centres - centre, dim=-1)
-        return torch.sigmoid((radius_m - distance) / 0.002).float()
+    grid, centre_world = SPHERE_GRID, SPHERE_CENTRE_WORLD
+    sphere_decoder = _sphere_decoder(0.03)  # latent 0 -> 3 cm, 1 cm too small
 
     direction = np.array([-1.0, 0.0, 0.0])
     start = make_transform(frame_from_z_axis(direction), centre_world + np.array([0.1, 0.0, 0.0]))
