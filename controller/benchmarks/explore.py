@@ -127,6 +127,8 @@ class TouchTrial:
     """The touch loss of all touches so far on the estimate before and after refining."""
     flipped_voxels: int = 0
     """Voxels the refinement moved across 0.5."""
+    stopped_by: str | None = None
+    """What stopped the fingers (``SimTouchBench.stopped_by``)."""
 
 
 def _seed(*parts: int) -> int:
@@ -236,6 +238,7 @@ class ObjectRun:
         measurement = self.bench.touch(target, noise_seed)
         if measurement is None:
             return None
+        stopped_by = self.bench.stopped_by(measurement)
         outcome = perception.interpret(measurement)
         refine = Stopwatch()
         refined = refine(perception.refine, estimate, [*outcomes, outcome], request)
@@ -251,7 +254,7 @@ class ObjectRun:
         before, after = estimate.probabilities > 0.5, refined.probabilities > 0.5
         flipped = int(np.count_nonzero(before != after))
         metrics = self.metrics(refined, [*outcomes, outcome])
-        return TouchTrial(outcome, refined, metrics, refine.wall_s[0], loss, flipped)
+        return TouchTrial(outcome, refined, metrics, refine.wall_s[0], loss, flipped, stopped_by)
 
     def oracle_candidates(
         self, perception: LearnedPerception, estimate: ShapeEstimate, outcomes: list[TouchOutcome]
@@ -315,6 +318,7 @@ def _explore(run: ObjectRun, method: str, run_index: int, tick: Callable[[], Non
         robot_s=[],
         contact=[],
         imprint=[],
+        stopped_by=[],
         touch_loss=[],
         flipped=[],
         target=[],
@@ -361,6 +365,7 @@ def _explore(run: ObjectRun, method: str, run_index: int, tick: Callable[[], Non
             curves["robot_s"].append(arm.touch(chosen.outcome.measurement.target))
         curves["contact"].append(bool(chosen.outcome.measurement.contact))
         curves["imprint"].append(len(chosen.outcome.contact_points_world) > 0)
+        curves["stopped_by"].append(chosen.stopped_by)
         curves["touch_loss"].append(list(chosen.loss))
         curves["flipped"].append(chosen.flipped_voxels)
         target = chosen.outcome.measurement.target

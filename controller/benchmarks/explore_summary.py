@@ -3,6 +3,7 @@ paper's figure (docs/explore.md, JSON)."""
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -59,12 +60,19 @@ def change_pct(before: float | None, after: float | None) -> float | None:
 def _touch_statistics(results: Sequence[dict]) -> dict[str, Any]:
     """How the touches of some results ended: a GelSight imprint (contact points), a force stop
     without one (the housing or another rigid part met the object first, or a flat face filled
-    the pad: only the sweep is known free), or a miss; how much the refinements did: the
-    median ratio of the touch loss after / before refining and the mean voxels flipped; and how
-    many touches repeated an earlier one."""
+    the pad: only the sweep is known free) with what stopped it, or a miss; how much the
+    refinements did: the median ratio of the touch loss after / before refining and the mean
+    voxels flipped; and how many touches repeated an earlier one."""
     runs = [run for r in results for run in r.get("runs", [r])]
     contact = [c for run in runs for c in run["contact"]]
     imprint = [i for run in runs for i in run["imprint"]]
+    # Results written before the bench told what stopped the fingers have no "stopped_by".
+    stopped_by = [s for run in runs for s in run.get("stopped_by", [None] * len(run["imprint"]))]
+    force_only_by = Counter(
+        str(s)
+        for c, i, s in zip(contact, imprint, stopped_by, strict=True)
+        if c and not i and s is not None
+    )
     ratios = [after / before for run in runs for before, after in run["touch_loss"] if before > 0]
     flipped = [f for run in runs for f in run["flipped"]]
     repeated = sum(_repeats(run["target"]) for run in runs)
@@ -72,6 +80,7 @@ def _touch_statistics(results: Sequence[dict]) -> dict[str, Any]:
         "imprint": int(sum(imprint)),
         "force_only": int(sum(c and not i for c, i in zip(contact, imprint, strict=True))),
         "miss": int(sum(not c for c in contact)),
+        "force_only_stopped_by": dict(force_only_by.most_common()),
         "touch_loss_after_over_before_median": float(np.median(ratios)) if ratios else None,
         "flipped_voxels_mean": float(np.mean(flipped)) if flipped else None,
         "repeated_targets": repeated,

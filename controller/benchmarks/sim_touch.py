@@ -43,6 +43,8 @@ START_FREE_TRAVEL_M = 0.003
 a contact are pulled back (``free_pad_points``) and must stay in front of the start."""
 MAX_START_STANDOFF_M = 0.045
 """The farthest start: from there the pad still sweeps past the target."""
+STOP_PROBE_M = 0.0001
+"""How much wider than where they stopped the fingers are tried to tell what stopped them."""
 FREE_AIR_POSE_WORLD_TCP = make_transform(None, (0.0, 0.0, 0.5))
 """Where the gripper is homed and the GelSight reference taken: fingers up, far above the
 object."""
@@ -133,6 +135,21 @@ class SimTouchBench:
             return None
         self.gelsight.rng = np.random.default_rng(list(noise_seed))
         return self._run(self._sweep(target, start))
+
+    def stopped_by(self, measurement: TouchMeasurement) -> str | None:
+        """What stopped the fingers of ``measurement`` (the bench's touch just made): the
+        rigid tool part that meets the object just beyond where they stopped
+        (``"gelsight_window"``: the frame round the gel), ``"table"`` for any part meeting the
+        table, ``"gel"`` for the gel's own force or its backing; None without a contact. Why
+        a touch left no imprint, which a robot cannot tell (docs/explore.md)."""
+        if not measurement.contact or measurement.gripper_width_m is None:
+            return None
+        world, width_m = self.world, measurement.gripper_width_m
+        pose_world_tcp = tcp_pose_for_pad(measurement.pose_world_pad, world.tool, width_m)
+        collision = world.tool_collision(pose_world_tcp, width_m + STOP_PROBE_M)
+        if collision is None:
+            return "gel"
+        return "table" if collision.obstacle == "table" else collision.part
 
     async def _sweep(
         self, target: TouchTarget, pose_world_pad_start: FloatArray

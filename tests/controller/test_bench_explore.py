@@ -237,6 +237,7 @@ def method_result(chamfer: list[float]) -> dict:
         "refine_s": [0.2] * touches,
         "contact": [True, False, True][:touches],
         "imprint": [True, False, False][:touches],
+        "stopped_by": ["gel", None, "gelsight_housing"][:touches],
         "touch_loss": [[2.0, 1.0]] * touches,
         "flipped": [4] * touches,
         "target": [[0.0, 0.0, 0.05, -1.0, 0.0, 0.0]] * touches,
@@ -266,6 +267,7 @@ def test_summary_averages_curves_and_checks_the_bar() -> None:
     assert active["chamfer_mm"] == [15.0, 12.5, 10.0, 8.0]
     assert active["chamfer_change_pct"] == pytest.approx(-45.0)  # mean of -40 % and -50 %
     assert active["touches"]["imprint"] == 2 and active["touches"]["force_only"] == 2
+    assert active["touches"]["force_only_stopped_by"] == {"gelsight_housing": 2}
     assert active["touches"]["miss"] == 2 and active["touches"]["flipped_voxels_mean"] == 4
     assert active["touches"]["touch_loss_after_over_before_median"] == 0.5
     assert active["touches"]["repeated_targets"] == 4  # the same target thrice per object
@@ -448,6 +450,23 @@ def test_a_stop_without_an_imprint_knows_where_the_tool_met_the_object(
         config, models=dataclasses.replace(config.models, stop_constraints=False)
     )
     assert len(perception_for(off, calibration).interpret(measurement).touch.stop_points_world) == 0
+
+
+@pytest.mark.parametrize(
+    ("height_m", "stopped_by"),
+    [
+        (BOX_HALF_M, "gel"),  # the face fills the pad
+        (2 * BOX_HALF_M + 0.012, "gelsight_housing"),  # the gel passes over the top
+        (2 * BOX_HALF_M + 0.06, None),  # everything passes over: a miss
+    ],
+)
+def test_the_bench_tells_what_stopped_the_fingers(box_bench, height_m, stopped_by) -> None:
+    """Why a touch left no imprint, which the benchmark counts (``stopped_by``): the gel's own
+    force, or the rigid part that meets the object just beyond where the fingers stopped."""
+    target = TouchTarget(np.array([BOX_HALF_M, 0.0, height_m]), np.array([-1.0, 0.0, 0.0]))
+    measurement = box_bench.touch(target, noise_seed=(0,))
+    assert measurement is not None
+    assert box_bench.stopped_by(measurement) == stopped_by
 
 
 def test_a_stop_where_the_tool_reached_the_table_says_nothing_of_the_object(
