@@ -105,6 +105,11 @@ FUSED_UPDATES = ("global", "fused")
 REPEAT_RADIUS_M = 0.005
 """A target this close to an earlier one, approached from the same direction, is not chosen
 again: the earlier touch already answered what it could."""
+FORCE_ONLY_REPEAT_RADIUS_M = 0.015
+FORCE_ONLY_REPEAT_ANGLE_DEG = 30.0
+"""A target this close to a touch stopped by force without an imprint, approached within this
+angle of its direction, is not chosen: a rigid part met the object there before the gel, and
+from nearly the same pose it would again (the pad is 19 x 14 mm)."""
 
 
 def load_calibration(config: Config) -> GelSightLUT:
@@ -254,6 +259,15 @@ class LearnedPerception:
                     for o in outcomes
                 ],
                 REPEAT_RADIUS_M,
+            ),
+            not_repeated_filter(
+                [
+                    (o.measurement.target.target_world, o.measurement.target.direction_world)
+                    for o in outcomes
+                    if o.measurement.contact and len(o.contact_points_world) == 0
+                ],
+                FORCE_ONLY_REPEAT_RADIUS_M,
+                FORCE_ONLY_REPEAT_ANGLE_DEG,
             ),
         )
         if request.policy in ("active", "efficient"):

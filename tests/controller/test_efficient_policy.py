@@ -14,8 +14,14 @@ from controller.motion.planner import MotionPlanner
 from controller.motion.poses import home_pose_world_tcp
 from controller.motion.safety import Obstacles
 from controller.perception.learned import EFFICIENT_CANDIDATES, LearnedPerception
-from controller.perception.protocol import ShapeEstimate, TouchTarget
+from controller.perception.protocol import (
+    ShapeEstimate,
+    TouchMeasurement,
+    TouchOutcome,
+    TouchTarget,
+)
 from controller.request import ExploreRequest
+from drivers.base import TactileFrame
 from drivers.tool import ToolModel
 from models.geometry import ur_pose_to_matrix
 
@@ -154,3 +160,32 @@ def test_the_efficient_policy_trades_uncertainty_for_robot_time() -> None:
         return 1.0 if np.allclose(target.target_world, efficient.target_world) else None
 
     assert np.allclose(select("efficient", only_the_cheap_one).target_world, efficient.target_world)
+
+
+@pytest.mark.parametrize("imprint", [False, True])
+def test_a_target_beside_a_force_only_stop_is_not_chosen_again(imprint: bool) -> None:
+    """The next target avoids the same mistake: after a touch stopped by force without an
+    imprint, no target within 15 mm of it from within 30 degrees of its direction is chosen
+    (the touch itself swept nothing: the estimate stays as it was). After an imprint there
+    the policy may go back nearby."""
+    config = Config()
+    perception = LearnedPerception(
+        config,
+        camera_position_world=config.cameras.rgbd.pose_world_camera()[:3, 3],
+        calibration=None,  # type: ignore[arg-type]  # select reads no GelSight
+    )
+    estimate = sphere_with_uncertain_patches(config)
+    request = ExploreRequest(policy="active")
+    first = perception.select(estimate, request, [], lambda t: True)
+    assert first is not None
+    frame = TactileFrame(np.zeros((4, 4, 3), np.uint8), 0.0)
+    stop = TouchMeasurement(
+        first, True, frame, frame, np.eye(4), first.target_world, config.limits.contact_force_n
+    )
+    points = first.target_world[None] if imprint else np.zeros((0, 3))
+    outcome = TouchOutcome(stop, points, None, None)
+    second = perception.select(estimate, request, [outcome], lambda t: True)
+    assert second is not None
+    near = np.linalg.norm(second.target_world - first.target_world) < 0.015
+    similar = second.direction_world @ first.direction_world > np.cos(np.radians(30.0))
+    assert (near and similar) == imprint
