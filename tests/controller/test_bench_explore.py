@@ -452,6 +452,24 @@ def test_a_stop_without_an_imprint_knows_where_the_tool_met_the_object(
     assert len(perception_for(off, calibration).interpret(measurement).touch.stop_points_world) == 0
 
 
+@pytest.mark.parametrize(("tilt_deg", "imprint"), [(0.0, False), (10.0, True)])
+def test_a_flat_face_filling_the_gel_leaves_an_imprint_only_when_met_at_a_tilt(
+    box_bench, config, calibration, tilt_deg, imprint
+) -> None:
+    """A GelSight sees slopes: pressed square onto a face that fills it, the gel leaves no
+    imprint (the touch is force only, stopped by the gel's own force); met 10 degrees off the
+    face's normal it presses a wedge, and the reconstruction finds it on the face."""
+    tilt = np.radians(tilt_deg)
+    direction = np.array([-np.cos(tilt), 0.0, -np.sin(tilt)])
+    target = TouchTarget(np.array([BOX_HALF_M, 0.0, 0.04]), direction)
+    measurement = box_bench.touch(target, noise_seed=(0,))
+    outcome = perception_for(config, calibration).interpret(measurement)
+    assert measurement.contact and box_bench.stopped_by(measurement) == "gel"
+    assert (len(outcome.contact_points_world) > 0) == imprint
+    if imprint:
+        assert np.allclose(outcome.contact_points_world[:, 0], BOX_HALF_M, atol=0.001)
+
+
 @pytest.mark.parametrize(
     ("height_m", "stopped_by"),
     [
