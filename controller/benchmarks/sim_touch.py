@@ -139,9 +139,10 @@ class SimTouchBench:
     def stopped_by(self, measurement: TouchMeasurement) -> str | None:
         """What stopped the fingers of ``measurement`` (the bench's touch just made): the
         rigid tool part that meets the object just beyond where they stopped
-        (``"gelsight_window"``: the frame round the gel), ``"table"`` for any part meeting the
-        table, ``"gel"`` for the gel's own force or its backing; None without a contact. Why
-        a touch left no imprint, which a robot cannot tell (docs/explore.md)."""
+        (``"gelsight_window"``: the rigid window behind the gel, met through the gel pressed
+        to its full depth or at its sides), ``"table"`` for any part meeting the table,
+        ``"gel"`` for the gel's own force; None without a contact. Why a touch left no
+        imprint, which a robot cannot tell (docs/explore.md)."""
         if not measurement.contact or measurement.gripper_width_m is None:
             return None
         world, width_m = self.world, measurement.gripper_width_m
