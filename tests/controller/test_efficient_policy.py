@@ -119,13 +119,18 @@ def sphere_with_uncertain_patches(config: Config) -> ShapeEstimate:
     return ShapeEstimate(grid, probabilities)
 
 
-def test_the_efficient_policy_trades_uncertainty_for_robot_time() -> None:
-    config = Config()
-    perception = LearnedPerception(
+def perception_for_select(config: Config) -> LearnedPerception:
+    """A perception whose ``select`` runs without a GelSight calibration (it reads none)."""
+    return LearnedPerception(
         config,
         camera_position_world=config.cameras.rgbd.pose_world_camera()[:3, 3],
-        calibration=None,  # type: ignore[arg-type]  # select reads no GelSight
+        calibration=None,  # type: ignore[arg-type]
     )
+
+
+def test_the_efficient_policy_trades_uncertainty_for_robot_time() -> None:
+    config = Config()
+    perception = perception_for_select(config)
     estimate = sphere_with_uncertain_patches(config)
 
     def select(policy: str, seconds: object) -> TouchTarget:
@@ -169,11 +174,7 @@ def test_a_target_beside_a_force_only_stop_is_not_chosen_again(imprint: bool) ->
     (the touch itself swept nothing: the estimate stays as it was). After an imprint there
     the policy may go back nearby."""
     config = Config()
-    perception = LearnedPerception(
-        config,
-        camera_position_world=config.cameras.rgbd.pose_world_camera()[:3, 3],
-        calibration=None,  # type: ignore[arg-type]  # select reads no GelSight
-    )
+    perception = perception_for_select(config)
     estimate = sphere_with_uncertain_patches(config)
     request = ExploreRequest(policy="active")
     first = perception.select(estimate, request, [], lambda t: True)
