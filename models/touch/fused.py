@@ -361,7 +361,7 @@ class FusedShape:
         ``_EXACT_NEAR_M`` of the touches' points (where they follow the measured detail)."""
         n = grid.resolution
         centres = grid.voxel_centres_world()
-        prior_values = self.prior(centres)
+        prior_values = self.prior.at_voxel_centres(grid)
         prior_field = np.maximum(prior_values, -centres[..., 2])
         prior_std = self.correction.settings.prior_std_m
         # Only near the surface can the correction change the sign or the probability: farther

@@ -316,6 +316,6 @@ def committee_probabilities(
     if state.candidate is state.mean:
         return probabilities
     centres = grid.voxel_centres_world()
-    distance = np.maximum(state.candidate.posed_distance()(centres), -centres[..., 2])
+    distance = np.maximum(state.candidate.posed_distance().at_voxel_centres(grid), -centres[..., 2])
     candidate = ndtr(-distance / std_m)
     return (0.5 * (probabilities + candidate)).astype(np.float32)

@@ -13,6 +13,7 @@ from models.touch.constraints import TouchResult
 from models.touch.fused import FusedShape, FusionSettings, _GramFactor
 from models.touch.observations import ObservationsError, SurfaceObservations, thin_to_lattice
 from models.touch.posed_prior import (
+    Pose,
     SignedDistanceGrid,
     _inside_distance,
     fit_pose,
@@ -63,6 +64,14 @@ def test_prior_distance_is_exact_near_the_surface(prior: np.ndarray) -> None:
     field = SignedDistanceGrid.from_probabilities(prior, GRID)
     face = np.array([[0.04 + d, 0.0, 0.05] for d in (-0.004, -0.001, 0.0, 0.002, 0.006)])
     assert np.allclose(field(face), [-0.004, -0.001, 0.0, 0.002, 0.006], atol=4e-4)
+
+
+def test_the_distance_at_its_own_voxel_centres_is_the_interpolated_one(prior: np.ndarray) -> None:
+    field = SignedDistanceGrid.from_probabilities(prior, GRID)
+    interpolated = field(GRID.voxel_centres_world())
+    assert np.allclose(field.at_voxel_centres(GRID), interpolated, atol=1e-9)
+    moved = posed_grid(GRID, Pose(x_m=0.003, yaw_rad=0.1))
+    assert np.allclose(field.at_voxel_centres(moved), field(moved.voxel_centres_world()))
 
 
 def test_a_face_measured_5mm_out_moves_there(prior: np.ndarray) -> None:
