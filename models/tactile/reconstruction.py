@@ -15,11 +15,13 @@ indentation h means the object surface is at pad z = -h. World points are metres
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.fft
 from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
 
 from models.geometry import transform_directions, transform_points
 from models.tactile.lut import (
@@ -48,6 +50,14 @@ BORDER_IMPRINT_PIXELS = 500
 # A free-border solve is known only up to its level and drifts at the imprint's shallow fringe,
 # so its contact mask keeps only the deeper part of the imprint.
 FREE_BORDER_CONTACT_FRACTION = 0.5
+# Gentle slopes: a slope of 0.05 changes the colour by ~2 grey levels, inside the table's
+# central bin (8 levels wide), which reads flat. Where the colour change, averaged over
+# GENTLE_BLOCK_PX blocks and smoothed over GENTLE_SMOOTHING_PX, lies within half a bin on
+# every channel, the slopes are read from it between the bins (trilinear): the averaging takes
+# the camera noise (1.5 levels) down to ~0.1, so no-contact frames stay flat, and on blocks it
+# costs a few milliseconds (docs/gelsight.md, "Gentle slopes").
+GENTLE_BLOCK_PX = 4
+GENTLE_SMOOTHING_PX = 6.0
 
 
 class PoissonSolver:
@@ -181,6 +191,12 @@ class TactileReconstructor:
         self._lut_r = level_lut
         tiles, _, _ = tile_grid(lut.image_shape, lut.tile_px)
         self._tile_offset = tiles * np.int32(levels**3)
+        self._levels = levels
+        self._reference = reference_bgr.astype(np.int16)
+        block = GENTLE_BLOCK_PX
+        self._block_rows = -(-lut.image_shape[0] // block)
+        self._block_cols = -(-lut.image_shape[1] // block)
+        self._block_tile_offset = self._tile_offset[::block, ::block]
         # image + (255 - reference) = image - reference + 255 in [0, 510], the lookups' index.
         self._reference_shifted = 255 - reference_bgr.astype(np.int16)
         self._solver = PoissonSolver(lut.image_shape, lut.mm_per_px)
@@ -194,7 +210,62 @@ class TactileReconstructor:
         index += self._lut_g.take(shifted[..., 1])
         index += self._lut_r.take(shifted[..., 2])
         index += self._tile_offset
-        return self.lut.table_gx.take(index), self.lut.table_gy.take(index)
+        grad_x, grad_y = self.lut.table_gx.take(index), self.lut.table_gy.take(index)
+        gentle, gentle_x, gentle_y = self._gentle_slopes(image_bgr)
+        grad_x[gentle], grad_y[gentle] = gentle_x[gentle], gentle_y[gentle]
+        return grad_x, grad_y
+
+    def _gentle_slopes(
+        self, image_bgr: ImageBGR
+    ) -> tuple[NDArray[np.bool_], FloatImage, FloatImage]:
+        """Where the colour change is gentle (``GENTLE_BLOCK_PX``), and the slopes read there
+        between the bins, on blocks repeated to the image's pixels."""
+        height, width = self.lut.image_shape
+        block, rows, cols = GENTLE_BLOCK_PX, self._block_rows, self._block_cols
+        change = image_bgr.astype(np.int16) - self._reference
+        if (rows * block, cols * block) != (height, width):
+            pad = ((0, rows * block - height), (0, cols * block - width), (0, 0))
+            change = np.pad(change, pad, mode="edge")
+        blocks = change.reshape(rows, block, cols, block, 3).mean(axis=(1, 3), dtype=np.float32)
+        for channel in range(3):
+            ndimage.gaussian_filter(
+                blocks[..., channel],
+                GENTLE_SMOOTHING_PX / block,
+                output=blocks[..., channel],
+                mode="nearest",
+            )
+        gentle = np.all(np.abs(blocks) < 0.5 * self.lut.colour_step, axis=-1)
+        block_x = np.zeros((rows, cols), np.float32)
+        block_y = np.zeros((rows, cols), np.float32)
+        block_x[gentle], block_y[gentle] = self._between_bins(
+            blocks[gentle], self._block_tile_offset[gentle]
+        )
+
+        def to_pixels(values: NDArray) -> NDArray:
+            return values.repeat(block, axis=0).repeat(block, axis=1)[:height, :width]
+
+        return to_pixels(gentle), to_pixels(block_x), to_pixels(block_y)
+
+    def _between_bins(
+        self, change: NDArray[np.float32], tile_offset: NDArray[np.int32]
+    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """The table's slopes at colour changes (M, 3) in tiles ``tile_offset`` (M,), trilinear
+        between the bins' centres (multiples of the colour step)."""
+        levels, half = self._levels, self._levels // 2
+        position = np.clip(change / self.lut.colour_step, -half, half) + half
+        lower = np.minimum(np.floor(position).astype(np.int32), levels - 2)
+        upper_weight = position - lower
+        base = tile_offset + (lower[:, 0] * levels + lower[:, 1]) * levels + lower[:, 2]
+        grad_x = np.zeros(len(change), np.float32)
+        grad_y = np.zeros(len(change), np.float32)
+        for corner in itertools.product((0, 1), repeat=3):
+            weight = np.prod(
+                np.where(corner, upper_weight, 1.0 - upper_weight), axis=1, dtype=np.float32
+            )
+            index = base + (corner[0] * levels + corner[1]) * levels + corner[2]
+            grad_x += weight * self.lut.table_gx.take(index)
+            grad_y += weight * self.lut.table_gy.take(index)
+        return grad_x, grad_y
 
     def height_map_mm(self, image_bgr: ImageBGR) -> FloatImage:
         """Indentation (mm, HxW float32, >= 0) of the gel in ``image_bgr``."""
@@ -208,13 +279,23 @@ class TactileReconstructor:
         return TactileReconstruction(height, mask, self.lut.mm_per_px)
 
     def _solve(self, image_bgr: ImageBGR) -> tuple[FloatImage, bool]:
-        """Height map, and whether the imprint ran off the border (free-border solve)."""
+        """Height map, and whether the imprint ran off the border (free-border solve): where
+        steep slopes reach the border, or where the zero border leaves no contact and the
+        free one does (a gentle press over much of the pad, crushed by a zero border)."""
         grad_x, grad_y = self.gradients(image_bgr)
-        free_border = imprint_at_border(grad_x, grad_y)
-        solver = self._free_border_solver if free_border else self._solver
-        height = solver.solve(grad_x, grad_y)
-        # The gel is only pushed in: negative heights are noise and the boundary's doing.
-        return np.maximum(height, 0.0, out=height), free_border
+        if imprint_at_border(grad_x, grad_y):
+            return self._positive(self._free_border_solver.solve(grad_x, grad_y)), True
+        height = self._positive(self._solver.solve(grad_x, grad_y))
+        if height.max() < MIN_CONTACT_MM:
+            free = self._positive(self._free_border_solver.solve(grad_x, grad_y))
+            if free.max() >= MIN_CONTACT_MM:
+                return free, True
+        return height, False
+
+    @staticmethod
+    def _positive(height: FloatImage) -> FloatImage:
+        """The gel is only pushed in: negative heights are noise and the boundary's doing."""
+        return np.maximum(height, 0.0, out=height)
 
 
 def imprint_at_border(
