@@ -177,7 +177,7 @@ def test_closed_loop_with_the_simulated_sensor(calibration: GelSightLUT) -> None
     Stated tolerance, for the calibration ball pressed 1.0 mm: peak within 10 % of the
     simulated gel surface's, RMSE over the geometric contact <= 0.08 mm, contact points within
     0.1 mm of the ball's surface in the world (95th percentile), mean normal within 3 degrees.
-    Measured: +6.3 %, 0.051 mm, 0.069 mm, 0.7 degrees. The simulator's pixel pitch is 19/640 mm,
+    Measured: +6.6 %, 0.052 mm, 0.071 mm, 0.7 degrees. The simulator's pixel pitch is 19/640 mm,
     0.6 % more than the calibration's 0.0295 mm: the reconstruction works in the latter.
     """
     simulator = GelSightSimulator()
