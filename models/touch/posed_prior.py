@@ -79,7 +79,7 @@ class SignedDistanceGrid:
 
     def at_voxel_centres(self, grid: VoxelGrid) -> FloatArray:
         """Signed distance (metres) at ``grid``'s voxel centres, (N, N, N). On this field's own
-        grid these are its values: no interpolation of 128^3 points (a tenth of a refine)."""
+        grid these are its values, read instead of interpolated at every voxel centre."""
         if grid == self.grid:
             return self.values_voxels.astype(float) * self.grid.voxel_size_m
         return self(grid.voxel_centres_world())
