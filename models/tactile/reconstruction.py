@@ -175,8 +175,8 @@ class TactileReconstructor:
     reference.
 
     Construction prepares everything that does not change per frame (colour-level lookups,
-    tile offsets, the Poisson spectrum), so a 640x480 frame costs a few milliseconds on one
-    thread. Frames must be uint8 BGR of the table's image size.
+    tile offsets, the Poisson spectrum), so a 640x480 frame costs about 10 ms on one thread
+    (docs/gelsight.md, "Speed"). Frames must be uint8 BGR of the table's image size.
     """
 
     def __init__(self, lut: GelSightLUT, reference_bgr: ImageBGR) -> None:
