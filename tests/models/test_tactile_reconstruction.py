@@ -219,16 +219,14 @@ def test_closed_loop_with_the_simulated_sensor(calibration: GelSightLUT) -> None
     assert fit_sphere_radius(points_world * 1e3) == pytest.approx(BALL_RADIUS_MM, rel=0.15)
 
 
-def _simulated_frame(
-    surface_mm: np.ndarray, seed: int = 3
-) -> tuple[GelSightSimulator, np.ndarray, np.ndarray]:
-    """(simulator, reference, image) of a gel surface through the simulated sensor."""
+def _simulated_frame(surface_mm: np.ndarray, seed: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """(reference, image) of a gel surface through the simulated sensor."""
     simulator = GelSightSimulator()
     rng = np.random.default_rng(seed)
     no_contact = np.zeros(simulator.spec.shape, dtype=np.float32)
     reference = np.mean([simulator.render_bgr(no_contact, rng) for _ in range(10)], axis=0)
     image = simulator.render_bgr(simulator.elastic_deformation_mm(surface_mm), rng)
-    return simulator, np.rint(reference).astype(np.uint8), image
+    return np.rint(reference).astype(np.uint8), image
 
 
 def _pad_rows_mm(simulator: GelSightSimulator) -> np.ndarray:
@@ -242,7 +240,7 @@ def test_gentle_slopes_are_read_between_the_colour_bins(calibration: GelSightLUT
     simulator = GelSightSimulator()
     rows_mm = _pad_rows_mm(simulator)
     wedge = np.maximum(0.5 + 0.05 * rows_mm, 0.0)[:, None] * np.ones(simulator.spec.shape[1])
-    _, reference, image = _simulated_frame(wedge.astype(np.float32))
+    reference, image = _simulated_frame(wedge.astype(np.float32))
     _, grad_y = TactileReconstructor(calibration, reference).gradients(image)
     height, width = grad_y.shape
     centre = grad_y[height // 4 : 3 * height // 4, width // 4 : 3 * width // 4]
@@ -258,7 +256,7 @@ def test_a_gentle_press_running_off_the_pad_is_a_contact(calibration: GelSightLU
     radius_mm, depth_mm, offset_mm = 42.5, 0.5, 4.0
     profile = depth_mm - (rows_mm - offset_mm) ** 2 / (2 * radius_mm)
     surface = np.maximum(profile, 0.0)[:, None] * np.ones(simulator.spec.shape[1])
-    _, reference, image = _simulated_frame(surface.astype(np.float32))
+    reference, image = _simulated_frame(surface.astype(np.float32))
     result = TactileReconstructor(calibration, reference).reconstruct(image)
     assert result.peak_mm == pytest.approx(depth_mm, rel=0.3)  # measured 0.46 mm
     touching = surface > 0.1 * depth_mm
