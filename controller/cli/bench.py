@@ -1,5 +1,6 @@
-"""`touchshape bench sim|prior|gelsight|service|explore|explore-bounds|safety`: the benchmarks
-(controller.benchmarks), each printing its JSON (safety: a table) and writing it to ``--json``."""
+"""`touchshape bench sim|prior|gelsight|service|explore|compare|explore-bounds|safety`: the
+benchmarks (controller.benchmarks), each printing its JSON (safety: a table) and writing it to
+``--json``; `compare` pools `explore`'s JSON files."""
 
 from __future__ import annotations
 
@@ -141,6 +142,18 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
     explore.add_argument("--json", type=Path, default=None, help="also write the JSON here")
     explore.add_argument("--plot", type=Path, default=None, help="Chamfer vs touches PNG")
     explore.set_defaults(handler=bench_explore)
+
+    compare = commands.add_parser(
+        "compare",
+        help="one method against another after the last touch, pooled over explore JSONs",
+        epilog="example: touchshape bench compare logs/bench/active_s*.json "
+        "logs/bench/random_s*.json --method active-global --baseline random-global",
+    )
+    compare.add_argument("results", type=Path, nargs="+", help="`bench explore` JSON files")
+    compare.add_argument("--method", default="active-global")
+    compare.add_argument("--baseline", default="random-global")
+    compare.add_argument("--json", type=Path, default=None, help="also write the JSON here")
+    compare.set_defaults(handler=bench_compare)
 
     bounds = commands.add_parser(
         "explore-bounds",
@@ -380,6 +393,24 @@ def bench_explore(args: argparse.Namespace) -> int:
     result = _run_and_print(run_explore_benchmark, args, config, prior_name, settings)
     if args.plot is not None:
         plot_curves(result, args.plot)
+    return 0
+
+
+def bench_compare(args: argparse.Namespace) -> int:
+    from controller.benchmarks.explore_summary import compare_methods
+
+    results = []
+    for path in args.results:
+        try:
+            results.append(json.loads(path.read_text()))
+        except (OSError, json.JSONDecodeError) as error:
+            raise SystemExit(f"touchshape: cannot read {path}: {error}") from error
+    try:
+        comparison = compare_methods(results, args.method, args.baseline)
+    except (KeyError, ValueError) as error:
+        raise SystemExit(f"touchshape: cannot compare: {error}") from error
+    shown = {k: v for k, v in comparison.items() if k != "pairs_table"}
+    print_json(comparison, args.json, shown=shown)
     return 0
 
 

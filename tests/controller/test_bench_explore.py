@@ -19,7 +19,7 @@ from controller.benchmarks.explore import (
     file_objects,
     run_explore_benchmark,
 )
-from controller.benchmarks.explore_summary import plot_curves, summarise
+from controller.benchmarks.explore_summary import compare_methods, plot_curves, summarise
 from controller.benchmarks.sim_touch import SimTouchBench
 from controller.cli.main import main
 from controller.config import Config
@@ -525,6 +525,75 @@ def test_a_contact_without_an_imprint_never_moves_the_surface_inward(
     beyond = stop + np.outer(np.linspace(0.001, 0.008, 8), target.direction_world)
     before, after = vision.fused.sdf(beyond), refined.fused.sdf(beyond)
     assert np.all(after <= np.maximum(before, 0.0) + 5e-4)
+
+
+def explore_json(seed: int, finals: dict[str, dict[str, float]]) -> dict:
+    """A `bench explore` JSON of one seed: per object, each method's final Chamfer (from 10)."""
+    objects = [
+        {
+            "name": name,
+            "input": "rgb",
+            "prior": "general",
+            "methods": {m: method_result([10.0, 10.0, final]) for m, final in methods.items()},
+        }
+        for name, methods in finals.items()
+    ]
+    return {"seed": seed, "objects": objects}
+
+
+def test_methods_are_compared_per_object_and_seed_across_files() -> None:
+    """Pairs are (seed, object) wherever both methods ran; a file may hold one method only."""
+    active_0 = explore_json(0, {"cup": {"active-global": 6.0}, "box": {"active-global": 9.0}})
+    random_0 = explore_json(0, {"cup": {"random-global": 8.0}, "box": {"random-global": 9.0}})
+    both_1 = explore_json(
+        1,
+        {
+            "cup": {"active-global": 7.0, "random-global": 7.0},
+            "box": {"active-global": 12.0, "random-global": 10.0},
+            "toy": {"active-global": 3.0},  # no random run: no pair
+        },
+    )
+    comparison = compare_methods([active_0, random_0, both_1], "active-global", "random-global")
+    assert comparison["pairs"] == 4 and comparison["objects"] == 2
+    means = comparison["final_chamfer_mm_mean"]
+    assert means == {"active-global": pytest.approx(8.5), "random-global": pytest.approx(8.5)}
+    assert comparison["vs_baseline_pct"] == pytest.approx(0.0)
+    assert comparison["vs_baseline_pct_per_seed"]["0"] == pytest.approx(100 * (15 / 17 - 1))
+    assert comparison["vs_baseline_pct_per_seed"]["1"] == pytest.approx(100 * (19 / 17 - 1))
+    geometric = np.exp(np.mean(np.log([6 / 8, 9 / 9, 7 / 7, 12 / 10])))
+    assert comparison["per_pair_geometric_mean_pct"] == pytest.approx(100 * (geometric - 1))
+    assert comparison["method_lower"] == 1
+    low, high = comparison["per_pair_geometric_mean_pct_ci95"]
+    assert low <= comparison["per_pair_geometric_mean_pct"] <= high
+
+
+def test_a_clear_difference_has_an_interval_without_zero() -> None:
+    """Active lower on every object of every seed: the bootstrap over objects excludes 0."""
+    finals = {f"object{i}": {"active-global": 8.0 + i, "random-global": 10.0 + i} for i in range(8)}
+    results = [explore_json(seed, finals) for seed in range(3)]
+    comparison = compare_methods(results, "active-global", "random-global")
+    assert comparison["pairs"] == 24 and comparison["method_lower"] == 24
+    assert comparison["vs_baseline_pct_ci95"][1] < 0.0
+    assert comparison["per_pair_geometric_mean_pct_ci95"][1] < 0.0
+
+
+def test_a_run_given_twice_is_refused(tmp_path: Path, capsys) -> None:
+    """The same seed and object twice would count one run as two draws: refused, clearly, as a
+    file that is not a benchmark's JSON is."""
+    result = explore_json(0, {"cup": {"active-global": 6.0, "random-global": 8.0}})
+    with pytest.raises(ValueError, match="appears twice"):
+        compare_methods([result, result], "active-global", "random-global")
+    with pytest.raises(ValueError, match="no object ran both"):
+        compare_methods([result], "active-global", "random-prior")
+    good, corrupt = tmp_path / "good.json", tmp_path / "corrupt.json"
+    good.write_text(json.dumps(result))
+    corrupt.write_text('{"seed": 0, "objects": [')
+    with pytest.raises(SystemExit, match="cannot read"):
+        main(["bench", "compare", str(good), str(corrupt)])
+    assert main(["bench", "compare", str(good), "--json", str(tmp_path / "out.json")]) == 0
+    written = json.loads((tmp_path / "out.json").read_text())
+    assert written["pairs"] == 1 and written["pairs_table"][0]["object"] == "cup"
+    assert '"pairs_table"' not in capsys.readouterr().out
 
 
 def test_the_global_bar_is_issue_27s() -> None:
