@@ -103,8 +103,12 @@ EFFICIENT_CANDIDATES = 4
 FUSED_UPDATES = ("global", "fused")
 """The updates that bend the prior's surface through every measurement (docs/touch.md)."""
 REPEAT_RADIUS_M = 0.005
-"""A target this close to an earlier one, approached from the same direction, is not chosen
-again: the earlier touch already answered what it could."""
+REPEAT_ANGLE_DEG = 25.0
+"""A target this close to an earlier one, approached within this angle of its direction, is not
+chosen again: the earlier touch already answered what it could. The angle spans more than one
+step of the policy's 10-degree directions, and the approach is aimed along the estimated normal
+(docs/touch.md): at 10 degrees the README main job pressed its first patch twice, the second
+approach 12 degrees from the first."""
 FORCE_ONLY_REPEAT_RADIUS_M = 0.015
 FORCE_ONLY_REPEAT_ANGLE_DEG = 30.0
 """A target this close to a touch stopped by force without an imprint, approached within this
@@ -259,6 +263,7 @@ class LearnedPerception:
                     for o in outcomes
                 ],
                 REPEAT_RADIUS_M,
+                REPEAT_ANGLE_DEG,
             ),
             not_repeated_filter(
                 [

@@ -13,7 +13,12 @@ from controller.motion.lines import duration_s
 from controller.motion.planner import MotionPlanner
 from controller.motion.poses import home_pose_world_tcp
 from controller.motion.safety import Obstacles
-from controller.perception.learned import EFFICIENT_CANDIDATES, LearnedPerception
+from controller.perception.learned import (
+    EFFICIENT_CANDIDATES,
+    REPEAT_ANGLE_DEG,
+    REPEAT_RADIUS_M,
+    LearnedPerception,
+)
 from controller.perception.protocol import (
     ShapeEstimate,
     TouchMeasurement,
@@ -190,3 +195,37 @@ def test_a_target_beside_a_force_only_stop_is_not_chosen_again(imprint: bool) ->
     near = np.linalg.norm(second.target_world - first.target_world) < 0.015
     similar = second.direction_world @ first.direction_world > np.cos(np.radians(30.0))
     assert (near and similar) == imprint
+
+
+def test_a_touched_patch_is_not_pressed_again_from_a_neighbouring_direction() -> None:
+    """One small uncertain patch (16 mm square) on a confident ball; after an imprint there the
+    estimate here stays as it was, so the patch stays the least confident window from several
+    directions. The policy must not aim within 5 mm of the touch again from within 25 degrees
+    (at 10 degrees it took the same patch from the neighbouring direction, 20 degrees off)."""
+    config = Config()
+    perception = perception_for_select(config)
+    grid = config.voxel_grid.grid(tuple(config.cameras.rgbd.pose_world_camera()[:3, 3]))
+    centres = grid.voxel_centres_world()
+    distance = np.linalg.norm(centres - np.array([0.0, 0.0, 0.05]), axis=-1)
+    probabilities = np.where(distance <= 0.04, 0.95, 0.02).astype(np.float32)
+    patch = (
+        (np.abs(distance - 0.04) < 0.012)
+        & (np.abs(centres[..., 2] - 0.05) < 0.008)
+        & (np.abs(centres[..., 0]) < 0.008)
+        & (centres[..., 1] < 0)
+    )
+    probabilities[patch] = 0.5
+    estimate = ShapeEstimate(grid, probabilities)
+    request = ExploreRequest(policy="active")
+    first = perception.select(estimate, request, [], lambda t: True)
+    assert first is not None
+    frame = TactileFrame(np.zeros((4, 4, 3), np.uint8), 0.0)
+    touch = TouchMeasurement(
+        first, True, frame, frame, np.eye(4), first.target_world, config.limits.contact_force_n
+    )
+    outcome = TouchOutcome(touch, first.target_world[None], None, None)
+    second = perception.select(estimate, request, [outcome], lambda t: True)
+    assert second is not None
+    near = np.linalg.norm(second.target_world - first.target_world) < REPEAT_RADIUS_M
+    angle = np.degrees(np.arccos(np.clip(second.direction_world @ first.direction_world, -1, 1)))
+    assert not (near and angle < REPEAT_ANGLE_DEG)
