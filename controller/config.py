@@ -225,6 +225,12 @@ class ModelsConfig:
     """Stop the global update's fit once this many steps in a row have not improved on its
     best, and keep that best (0: every step, the last). Off: 3 meets the 0.5 s asked per
     touch but lowered the shapes a little on three of four sets (docs/touch.md, "Cost")."""
+    compute_threads: int = 0
+    """CPU threads of the session's perception, torch's and numpy's BLAS alike (0: half the
+    cores, at most 4). Why not all: the devices' drivers (on the bench, its simulation) run
+    beside it, and threads that wait on each other cost more than they bring. On a 2-core
+    machine the main job's compute fell from 17.7 s to 11.9 s with one thread (docs/touch.md,
+    "Cost")."""
     global_camera_constraints: bool = True
     """Whether the camera's depth points constrain the global update's latent fit too (the fused
     correction passes through them in any case)."""
@@ -272,6 +278,8 @@ class ModelsConfig:
             raise FieldError("global_iterations", "must be >= 0")
         if self.global_patience < 0:
             raise FieldError("global_patience", "must be >= 0 (0: off)")
+        if not 0 <= self.compute_threads <= 256:
+            raise FieldError("compute_threads", "must be in [0, 256] (0: half the cores, <= 4)")
         require_positive(self, "fusion_support_m")
         require_positive(self, "fusion_prior_std_m")
         if self.refine_iterations_per_touch < 0:

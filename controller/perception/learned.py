@@ -16,12 +16,14 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
 import torch
+from threadpoolctl import threadpool_limits
 
 from controller.config import Config, ModelsConfig
 from controller.perception.protocol import (
@@ -563,9 +565,23 @@ def vision_settings(
     return VisionSettings(fusion=fusion, symmetry=symmetry, use_variance=variance)
 
 
+def limit_compute_threads(threads: int = 0) -> int:
+    """Set this process's torch threads and numpy's BLAS threads (threadpoolctl) to ``threads``
+    (0: half the cores, at most 4: the 3D convolutions of one latent gain little beyond);
+    returns the number set. Process-wide: the service's perception is the process's compute."""
+    if threads < 0:
+        raise ValueError(f"compute threads must be >= 0, not {threads}")
+    if threads == 0:
+        threads = max(1, min(4, (os.cpu_count() or 1) // 2))
+    torch.set_num_threads(threads)
+    threadpool_limits(limits=threads, user_api="blas")
+    return threads
+
+
 def make_perception(config: Config, devices: Devices | None = None) -> LearnedPerception:
     """The perception the service uses (``touchshape serve`` / ``explore``; ``replay`` has no
-    devices: it needs none)."""
+    devices: it needs none), with its compute threads set (``ModelsConfig.compute_threads``)."""
+    limit_compute_threads(config.models.compute_threads)
     camera_position = config.cameras.rgbd.pose_world_camera()[:3, 3]
     perception = LearnedPerception(
         config,

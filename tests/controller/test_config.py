@@ -113,6 +113,7 @@ def test_bad_config_files_name_the_key(tmp_path: Path, text: str, message: str) 
         ("[robot.arm]\nconnect_attempts = 0\n", "'robot.arm.connect_attempts' must be at least"),
         ("[sensor]\nimage_noise_sigma = -1.0\n", "'sensor.image_noise_sigma' must be >= 0"),
         ("[models]\nglobal_patience = -1\n", "'models.global_patience' must be >= 0"),
+        ("[models]\ncompute_threads = -2\n", "'models.compute_threads' must be in [0, 256]"),
         ("[sim]\ntable_size_m = [1.2, 0.0]\n", "'sim.table_size_m' must be positive"),
         ("[motion]\nstandoff_m = 0.07\n", "'motion.standoff_m' must be below"),
         ("[models]\nprior = '../../etc/passwd'\n", "'models.prior' must be 1..64 letters"),
