@@ -205,6 +205,12 @@ class ModelsConfig:
     weights_dir: str = ""
     """Empty = the weights shipped with the package."""
     device: str = "cpu"
+    compute_threads: int = 0
+    """CPU threads of the session's perception, torch's and numpy's BLAS alike (0: half the
+    cores, at most 4). Why not all: the devices' drivers (on the bench, its simulation) run
+    beside it, and threads that wait on each other cost more than they bring: on a 2-core
+    machine the main job's compute fell from 17.7-18.9 s to 12.9-14.1 s with one thread
+    (docs/touch.md, "Cost")."""
     update: Literal["global", "fused", "prior", "direct"] = "global"
     """How touches change the shape (a request may choose another): "global" fits the prior's
     latent to every touch, takes that fit as the mean once it has predicted a touch it had not
@@ -225,12 +231,6 @@ class ModelsConfig:
     """Stop the global update's fit once this many steps in a row have not improved on its
     best, and keep that best (0: every step, the last). Off: 3 meets the 0.5 s asked per
     touch but lowered the shapes a little on three of four sets (docs/touch.md, "Cost")."""
-    compute_threads: int = 0
-    """CPU threads of the session's perception, torch's and numpy's BLAS alike (0: half the
-    cores, at most 4). Why not all: the devices' drivers (on the bench, its simulation) run
-    beside it, and threads that wait on each other cost more than they bring. On a 2-core
-    machine the main job's compute fell from 17.7 s to 11.9 s with one thread (docs/touch.md,
-    "Cost")."""
     global_camera_constraints: bool = True
     """Whether the camera's depth points constrain the global update's latent fit too (the fused
     correction passes through them in any case)."""

@@ -255,7 +255,7 @@ def compare_methods(
     finals: dict[str, dict[tuple, float]] = {method: {}, baseline: {}}
     for result in results:
         for obj in result["objects"]:
-            key = (result["seed"], obj["input"], obj["prior"], obj["name"])
+            key = (result["seed"], obj.get("input"), obj.get("prior"), obj["name"])
             for name, found in finals.items():
                 if name not in obj["methods"]:
                     continue
