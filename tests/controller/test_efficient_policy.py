@@ -172,15 +172,12 @@ def test_the_efficient_policy_trades_uncertainty_for_robot_time() -> None:
     assert np.allclose(select("efficient", only_the_cheap_one).target_world, efficient.target_world)
 
 
-@pytest.mark.parametrize("imprint", [False, True])
-def test_a_target_beside_a_force_only_stop_is_not_chosen_again(imprint: bool) -> None:
-    """The next target avoids the same mistake: after a touch stopped by force without an
-    imprint, no target within 15 mm of it from within 30 degrees of its direction is chosen
-    (the touch itself swept nothing: the estimate stays as it was). After an imprint there
-    the policy may go back nearby."""
-    config = Config()
+def first_and_second_targets(
+    config: Config, estimate: ShapeEstimate, *, imprint: bool
+) -> tuple[TouchTarget, TouchTarget]:
+    """The active policy's first target, and its second after a touch there stopped by force,
+    with an imprint at the target or without one. The estimate is not refined in between."""
     perception = perception_for_select(config)
-    estimate = sphere_with_uncertain_patches(config)
     request = ExploreRequest(policy="active")
     first = perception.select(estimate, request, [], lambda t: True)
     assert first is not None
@@ -189,9 +186,23 @@ def test_a_target_beside_a_force_only_stop_is_not_chosen_again(imprint: bool) ->
         first, True, frame, frame, np.eye(4), first.target_world, config.limits.contact_force_n
     )
     points = first.target_world[None] if imprint else np.zeros((0, 3))
-    outcome = TouchOutcome(stop, points, None, None)
-    second = perception.select(estimate, request, [outcome], lambda t: True)
+    second = perception.select(
+        estimate, request, [TouchOutcome(stop, points, None, None)], lambda t: True
+    )
     assert second is not None
+    return first, second
+
+
+@pytest.mark.parametrize("imprint", [False, True])
+def test_a_target_beside_a_force_only_stop_is_not_chosen_again(imprint: bool) -> None:
+    """The next target avoids the same mistake: after a touch stopped by force without an
+    imprint, no target within 15 mm of it from within 30 degrees of its direction is chosen
+    (the touch itself swept nothing: the estimate stays as it was). After an imprint there
+    the policy may go back nearby."""
+    config = Config()
+    first, second = first_and_second_targets(
+        config, sphere_with_uncertain_patches(config), imprint=imprint
+    )
     near = np.linalg.norm(second.target_world - first.target_world) < 0.015
     similar = second.direction_world @ first.direction_world > np.cos(np.radians(30.0))
     assert (near and similar) == imprint
@@ -203,7 +214,6 @@ def test_a_touched_patch_is_not_pressed_again_from_a_neighbouring_direction() ->
     directions. The policy must not aim within 5 mm of the touch again from within 25 degrees
     (at 10 degrees it took the same patch from the neighbouring direction, 20 degrees off)."""
     config = Config()
-    perception = perception_for_select(config)
     grid = config.voxel_grid.grid(tuple(config.cameras.rgbd.pose_world_camera()[:3, 3]))
     centres = grid.voxel_centres_world()
     distance = np.linalg.norm(centres - np.array([0.0, 0.0, 0.05]), axis=-1)
@@ -215,17 +225,9 @@ def test_a_touched_patch_is_not_pressed_again_from_a_neighbouring_direction() ->
         & (centres[..., 1] < 0)
     )
     probabilities[patch] = 0.5
-    estimate = ShapeEstimate(grid, probabilities)
-    request = ExploreRequest(policy="active")
-    first = perception.select(estimate, request, [], lambda t: True)
-    assert first is not None
-    frame = TactileFrame(np.zeros((4, 4, 3), np.uint8), 0.0)
-    touch = TouchMeasurement(
-        first, True, frame, frame, np.eye(4), first.target_world, config.limits.contact_force_n
+    first, second = first_and_second_targets(
+        config, ShapeEstimate(grid, probabilities), imprint=True
     )
-    outcome = TouchOutcome(touch, first.target_world[None], None, None)
-    second = perception.select(estimate, request, [outcome], lambda t: True)
-    assert second is not None
     near = np.linalg.norm(second.target_world - first.target_world) < REPEAT_RADIUS_M
     angle = np.degrees(np.arccos(np.clip(second.direction_world @ first.direction_world, -1, 1)))
     assert not (near and angle < REPEAT_ANGLE_DEG)
