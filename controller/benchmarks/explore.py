@@ -106,6 +106,11 @@ class ExploreSettings:
     seed: int = 0
     timing_resolutions: tuple[int, ...] = (64, 128)
     """Select and refine latency at these resolutions (:func:`latency_figures`; empty: none)."""
+    select_lag: bool = False
+    """Choose each target from the estimate before the last touch's refinement, with every
+    touch written in, as a session does while that refinement overlaps the arm's motion
+    (``[motion] refine_while_moving``, docs/controller.md). False: from the latest estimate, as
+    a session that refines first."""
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.methods if m not in METHODS]
@@ -324,6 +329,7 @@ def _explore(run: ObjectRun, method: str, run_index: int, tick: Callable[[], Non
         target=[],
     )
     arm = PlannedArm(run.config, run.bench.world.tool, run.bench.world.pose_world_base)
+    chosen_from = estimate  # what the policy reads: the latest estimate, or the one before it
     for touch in range(settings.touches):
         noise = (settings.seed, run.key, method_index, run_index, touch)
         trial = partial(
@@ -332,19 +338,24 @@ def _explore(run: ObjectRun, method: str, run_index: int, tick: Callable[[], Non
         # The policy's time with the planner's checks, without the bench's start checks; the
         # oracle's whole choice (the oracle is not planned: it has no robot time).
         select, checks = Stopwatch(), Stopwatch()
-        arm.set_estimate(estimate)
+        arm.set_estimate(chosen_from)
         if policy == "oracle":
-            candidates = select(run.oracle_candidates, perception, estimate, outcomes)
+            candidates = select(run.oracle_candidates, perception, chosen_from, outcomes)
             chosen = select(choose_oracle_trial, candidates, trial)
         else:
             allowed = partial(
                 _allowed_by_bench_and_planner, partial(checks, run.bench.allowed), arm
             )
             target = select(
-                perception.select, estimate, request, outcomes, allowed, robot_seconds=arm.seconds
+                perception.select,
+                chosen_from,
+                request,
+                outcomes,
+                allowed,
+                robot_seconds=arm.seconds,
             )
             if target is not None:  # as a session does (the bench's tool placed by the pad)
-                occupied = estimate.occupied_points_world()
+                occupied = chosen_from.occupied_points_world()
                 tool = run.bench.world.tool
                 rolls = rolls_avoiding_rim_stops(target, outcomes)
                 roll = window_leading_roll(target, occupied, tool, TOUCH_START_WIDTH_M, rolls)
@@ -355,6 +366,7 @@ def _explore(run: ObjectRun, method: str, run_index: int, tick: Callable[[], Non
         if chosen is None:
             log.info("%s: no feasible touch after %d", method, touch)
             break
+        chosen_from = estimate if settings.select_lag else chosen.estimate
         estimate = chosen.estimate
         outcomes.append(chosen.outcome)
         for key, value in chosen.metrics.items():
@@ -492,6 +504,7 @@ def run_explore_benchmark(
         "random_runs": settings.random_runs,
         "oracle_candidates": settings.oracle_candidates,
         "seed": settings.seed,
+        "select_lag": settings.select_lag,
         "refine_learning_rate": models.refine_learning_rate,
         "refine_iterations_per_touch": models.refine_iterations_per_touch,
         "refine_loss": models.refine_loss,

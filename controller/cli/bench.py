@@ -139,6 +139,12 @@ def add_commands(groups: argparse._SubParsersAction) -> None:
     explore.add_argument(
         "--no-timing", action="store_true", help="skip the 64^3 / 128^3 latency figures"
     )
+    explore.add_argument(
+        "--select-lag",
+        action="store_true",
+        help="choose each target from the estimate before the last refinement, as a session "
+        "does while that refinement overlaps the arm's motion",
+    )
     explore.add_argument("--json", type=Path, default=None, help="also write the JSON here")
     explore.add_argument("--plot", type=Path, default=None, help="Chamfer vs touches PNG")
     explore.set_defaults(handler=bench_explore)
@@ -389,6 +395,7 @@ def bench_explore(args: argparse.Namespace) -> int:
         prior=prior_name,
         seed=args.seed,
         timing_resolutions=() if args.no_timing else (64, 128),
+        select_lag=args.select_lag,
     )
     result = _run_and_print(run_explore_benchmark, args, config, prior_name, settings)
     if args.plot is not None:

@@ -227,6 +227,54 @@ def test_benchmark_json_on_a_small_object(config, calibration, tmp_path: Path) -
     assert (tmp_path / "explore.png").stat().st_size > 1000
 
 
+@pytest.mark.parametrize("select_lag", [False, True])
+def test_a_lagged_policy_reads_the_estimate_before_the_last_refinement(
+    config, calibration, monkeypatch, select_lag: bool
+) -> None:
+    """As a session refining while the arm moves: the target after touch k is chosen from the
+    estimate touch k was refined from, not from touch k's refinement."""
+    # The estimates themselves, kept alive, compared by identity.
+    read: list[object] = []
+    refined_from: list[object] = []
+    refined: list[object] = []
+    select, refine = LearnedPerception.select, LearnedPerception.refine
+
+    def recording_select(self, estimate, *args, **kwargs):
+        read.append(estimate)
+        return select(self, estimate, *args, **kwargs)
+
+    def recording_refine(self, estimate, *args, **kwargs):
+        result = refine(self, estimate, *args, **kwargs)
+        refined_from.append(estimate)
+        refined.append(result)
+        return result
+
+    monkeypatch.setattr(LearnedPerception, "select", recording_select)
+    monkeypatch.setattr(LearnedPerception, "refine", recording_refine)
+    box = trimesh.creation.box((0.06, 0.05, 0.08), transform=make_transform(None, (0, 0, 0.04)))
+    settings = ExploreSettings(
+        touches=3,
+        methods=("active-fused",),
+        timing_resolutions=(),
+        input_mode="rgb",
+        prior="general",
+        select_lag=select_lag,
+    )
+    result = run_explore_benchmark(
+        config,
+        [EvalObject("small_box", "file", box)],
+        settings,
+        priors={"general": ShapePrior.untrained("cpu")},
+        calibration=calibration,
+        progress=False,
+    )
+    assert result["select_lag"] is select_lag
+    assert len(refined) == 3 and len(read) == 3
+    assert read[0] is refined_from[0]  # the first target: from vision either way
+    expected = refined_from[:2] if select_lag else refined[:2]
+    assert all(a is b for a, b in zip(read[1:], expected, strict=True))
+
+
 def method_result(chamfer: list[float]) -> dict:
     touches = len(chamfer) - 1
     return {
