@@ -61,6 +61,7 @@ METHODS: dict[str, tuple[Policy, Update]] = {
     "random-global": ("random", "global"),
     "efficient-global": ("efficient", "global"),
     "efficient-fused": ("efficient", "fused"),
+    "oracle-global": ("oracle", "global"),
 }
 """Method name -> (touch policy, shape update). A method's seeds depend on its position here."""
 MAX_OBJECT_HEIGHT_M, MAX_OBJECT_WIDTH_M = 0.25, 0.20

@@ -22,7 +22,7 @@ if TYPE_CHECKING:
 
 METHODS = (
     "active-global,random-global,efficient-global,active-fused,random-fused,efficient-fused,"
-    "oracle-fused,active-prior,random-prior,active-direct,oracle-prior"
+    "oracle-fused,active-prior,random-prior,active-direct,oracle-prior,oracle-global"
 )
 """All methods (``controller.benchmarks.explore.METHODS`` defines them)."""
 DEFAULT_METHODS = "active-global,random-global,efficient-global,active-fused,active-prior"
