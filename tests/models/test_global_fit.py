@@ -119,13 +119,19 @@ def test_the_guard_refuses_a_step_a_held_out_touch_contradicts(bottle_vision):
     prior, latent, vision = bottle_vision
     touches = _shifted_touches(vision, 0.010, 3)
     contradiction = _shifted_touches(vision, -0.010, 4)[3]
-    state = _run(prior, latent, vision, [*touches, contradiction])
-    taken_before = state.decisions[-2].taken
+    before = _run(prior, latent, vision, touches)
+    all_four = [*touches, contradiction]
+    state = global_step(
+        before, prior.decode, latent, all_four, observations_of(all_four), WITH_POSE
+    )
     last = state.decisions[-1]
-    assert taken_before  # the consistent touches moved the mean
+    assert before.decisions[-1].taken  # the consistent touches moved the mean
     assert not last.taken
     assert last.candidate_error_m > last.vision_error_m  # vision predicted it better
-    # The mean is still the fit of touches 1-3, which the contradiction did not move.
+    # The mean is still the fit of touches 1-3, which the contradiction did not move; the fit
+    # to all four waits as the next candidate.
+    assert state.mean is before.mean
+    assert state.candidate is not before.mean
     assert state.mean.pose.x_m == pytest.approx(0.010, abs=0.003)
 
 
