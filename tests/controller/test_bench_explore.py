@@ -185,8 +185,20 @@ def check_curves(result: dict, touches: int) -> None:
     assert len(result["select_s"]) == len(result["refine_s"]) == result["touches_made"]
 
 
-def test_benchmark_json_on_a_small_object(config, calibration, tmp_path: Path) -> None:
+def run_on_small_box(config: Config, calibration, settings: ExploreSettings) -> dict:
+    """The benchmark's JSON on a 6 x 5 x 8 cm box, with an untrained general prior."""
     box = trimesh.creation.box((0.06, 0.05, 0.08), transform=make_transform(None, (0, 0, 0.04)))
+    return run_explore_benchmark(
+        config,
+        [EvalObject("small_box", "file", box)],
+        settings,
+        priors={"general": ShapePrior.untrained("cpu")},
+        calibration=calibration,
+        progress=False,
+    )
+
+
+def test_benchmark_json_on_a_small_object(config, calibration, tmp_path: Path) -> None:
     settings = ExploreSettings(
         touches=2,
         methods=("active-fused", "random-prior"),
@@ -195,14 +207,7 @@ def test_benchmark_json_on_a_small_object(config, calibration, tmp_path: Path) -
         input_mode="rgb",  # RGB-D: the fused methods start from the depth fused in
         prior="general",
     )
-    result = run_explore_benchmark(
-        config,
-        [EvalObject("small_box", "file", box)],
-        settings,
-        priors={"general": ShapePrior.untrained("cpu")},
-        calibration=calibration,
-        progress=False,
-    )
+    result = run_on_small_box(config, calibration, settings)
     json.dumps(result, allow_nan=False)  # strict JSON: no NaN or inf
     (obj,) = result["objects"]
     assert obj["name"] == "small_box" and set(obj["methods"]) == set(settings.methods)
@@ -251,7 +256,6 @@ def test_a_lagged_policy_reads_the_estimate_before_the_last_refinement(
 
     monkeypatch.setattr(LearnedPerception, "select", recording_select)
     monkeypatch.setattr(LearnedPerception, "refine", recording_refine)
-    box = trimesh.creation.box((0.06, 0.05, 0.08), transform=make_transform(None, (0, 0, 0.04)))
     settings = ExploreSettings(
         touches=3,
         methods=("active-fused",),
@@ -260,14 +264,7 @@ def test_a_lagged_policy_reads_the_estimate_before_the_last_refinement(
         prior="general",
         select_lag=select_lag,
     )
-    result = run_explore_benchmark(
-        config,
-        [EvalObject("small_box", "file", box)],
-        settings,
-        priors={"general": ShapePrior.untrained("cpu")},
-        calibration=calibration,
-        progress=False,
-    )
+    result = run_on_small_box(config, calibration, settings)
     assert result["select_lag"] is select_lag
     assert len(refined) == 3 and len(read) == 3
     assert read[0] is refined_from[0]  # the first target: from vision either way
